@@ -1,0 +1,105 @@
+//! The one error type of the crate.
+
+use std::fmt;
+use std::path::PathBuf;
+
+/// Everything that can go wrong when loading weights or matching.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The weights file could not be read from disk.
+    #[error("cannot read weights file {}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The bytes are not a valid safetensors file (truncated, corrupted, other format).
+    #[error("not a valid safetensors weights file: {0}")]
+    WeightsFormat(String),
+    /// The file has no `paraformer.config` metadata and no config was given.
+    #[error("weights file has no `paraformer.config` metadata; pass a config explicitly")]
+    MissingConfig,
+    /// The config JSON or a config value is invalid.
+    #[error("invalid config: {0}")]
+    Config(String),
+    /// The tensors in the file do not match the config (every problem is listed).
+    #[error("weights do not match the config ({} problem{}):\n{}", .0.len(), if .0.len() == 1 { "" } else { "s" }, ProblemList(.0))]
+    WeightsMismatch(Vec<TensorProblem>),
+    /// A bad argument to `match_pair` (shape, width, NaN/Inf, image size).
+    #[error("invalid input `{argument}`: {reason}")]
+    InvalidInput { argument: String, reason: String },
+    /// An internal tensor operation failed.
+    #[error("tensor operation failed: {0}")]
+    Tensor(#[from] candle_core::Error),
+}
+
+impl Error {
+    pub(crate) fn input(argument: impl Into<String>, reason: impl Into<String>) -> Self {
+        Error::InvalidInput { argument: argument.into(), reason: reason.into() }
+    }
+
+    /// True for errors about the weights file or its config (as opposed to match inputs).
+    pub fn is_weights_error(&self) -> bool {
+        matches!(
+            self,
+            Error::WeightsFormat(_) | Error::MissingConfig | Error::Config(_) | Error::WeightsMismatch(_)
+        )
+    }
+}
+
+/// One way in which a tensor of a weights file differs from what the config needs.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TensorProblem {
+    Missing { name: String, expected_shape: Vec<usize> },
+    Unexpected { name: String, shape: Vec<usize> },
+    WrongShape { name: String, expected_shape: Vec<usize>, found_shape: Vec<usize> },
+    WrongDtype { name: String, found: String },
+}
+
+impl TensorProblem {
+    /// The tensor name the problem is about.
+    pub fn name(&self) -> &str {
+        match self {
+            TensorProblem::Missing { name, .. }
+            | TensorProblem::Unexpected { name, .. }
+            | TensorProblem::WrongShape { name, .. }
+            | TensorProblem::WrongDtype { name, .. } => name,
+        }
+    }
+}
+
+impl fmt::Display for TensorProblem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            TensorProblem::Missing { name, expected_shape } => {
+                write!(f, "missing tensor `{name}` (expected shape {expected_shape:?})")
+            }
+            TensorProblem::Unexpected { name, shape } => {
+                write!(f, "unexpected tensor `{name}` (shape {shape:?}) is not used by this config")
+            }
+            TensorProblem::WrongShape { name, expected_shape, found_shape } => write!(
+                f,
+                "tensor `{name}` has shape {found_shape:?}, expected {expected_shape:?}"
+            ),
+            TensorProblem::WrongDtype { name, found } => {
+                write!(f, "tensor `{name}` has dtype {found}, expected F32, F16 or BF16")
+            }
+        }
+    }
+}
+
+struct ProblemList<'a>(&'a [TensorProblem]);
+
+impl fmt::Display for ProblemList<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, p) in self.0.iter().enumerate() {
+            if i > 0 {
+                writeln!(f)?;
+            }
+            write!(f, "  - {p}")?;
+        }
+        Ok(())
+    }
+}
+
+pub type Result<T> = std::result::Result<T, Error>;

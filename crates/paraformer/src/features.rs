@@ -1,0 +1,136 @@
+//! Per-image matcher inputs (SPEC §1): keypoints, scores, descriptors, image size;
+//! their validation and the SuperGlue keypoint normalisation.
+
+use std::path::Path;
+
+use safetensors::{Dtype, SafeTensors};
+
+use crate::error::{Error, Result};
+
+/// Keypoints and descriptors of one image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Features {
+    /// `[K, 2]` pixel coordinates `(x, y)`.
+    pub keypoints: Vec<[f32; 2]>,
+    /// `[K]` detection scores (1.0 when the detector has none).
+    pub scores: Vec<f32>,
+    /// `[K, D]` descriptors, row-major.
+    pub descriptors: Vec<f32>,
+    /// `D`, the width of one descriptor.
+    pub descriptor_dim: usize,
+    /// `(width, height)` of the image in pixels.
+    pub image_size: (f32, f32),
+}
+
+impl Features {
+    /// Builds features; `scores = None` means 1.0 for every keypoint.
+    pub fn new(
+        keypoints: Vec<[f32; 2]>,
+        scores: Option<Vec<f32>>,
+        descriptors: Vec<f32>,
+        descriptor_dim: usize,
+        image_size: (f32, f32),
+    ) -> Self {
+        let scores = scores.unwrap_or_else(|| vec![1.0; keypoints.len()]);
+        Self { keypoints, scores, descriptors, descriptor_dim, image_size }
+    }
+
+    /// Number of keypoints `K`.
+    pub fn len(&self) -> usize {
+        self.keypoints.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.keypoints.is_empty()
+    }
+
+    /// Checks shapes against `descriptor_dim` and that every value is finite.
+    /// `image` (0 or 1) is appended to argument names in errors, e.g. `descriptors1`.
+    pub fn validate(&self, descriptor_dim: usize, image: usize) -> Result<()> {
+        let k = self.len();
+        let name = |a: &str| format!("{a}{image}");
+        if self.scores.len() != k {
+            return Err(Error::input(name("scores"), format!("expected shape [{k}], got [{}]", self.scores.len())));
+        }
+        if self.descriptor_dim != descriptor_dim {
+            return Err(Error::input(
+                name("descriptors"),
+                format!("expected shape [{k}, {descriptor_dim}] (descriptor_dim of the model), got [{k}, {}]", self.descriptor_dim),
+            ));
+        }
+        if self.descriptors.len() != k * descriptor_dim {
+            return Err(Error::input(
+                name("descriptors"),
+                format!("expected shape [{k}, {descriptor_dim}] = {} values, got {} values", k * descriptor_dim, self.descriptors.len()),
+            ));
+        }
+        let (w, h) = self.image_size;
+        if !(w.is_finite() && h.is_finite() && w > 0.0 && h > 0.0) {
+            return Err(Error::input(name("image_size"), format!("expected a positive finite (width, height), got ({w}, {h})")));
+        }
+        if let Some(i) = self.keypoints.iter().position(|p| !(p[0].is_finite() && p[1].is_finite())) {
+            return Err(Error::input(name("keypoints"), format!("row {i} is not finite (NaN or Inf)")));
+        }
+        if let Some(i) = self.scores.iter().position(|s| !s.is_finite()) {
+            return Err(Error::input(name("scores"), format!("entry {i} is not finite (NaN or Inf)")));
+        }
+        if let Some(i) = self.descriptors.iter().position(|d| !d.is_finite()) {
+            return Err(Error::input(name("descriptors"), format!("row {} is not finite (NaN or Inf)", i / descriptor_dim.max(1))));
+        }
+        Ok(())
+    }
+
+    /// `[(x−cx)/s, (y−cy)/s, score]` per keypoint, `c = (w/2, h/2)`, `s = 0.7·max(w, h)`.
+    pub fn normalized_positions(&self) -> Vec<f32> {
+        let (w, h) = self.image_size;
+        let (cx, cy, scale) = (w / 2.0, h / 2.0, 0.7 * w.max(h));
+        self.keypoints
+            .iter()
+            .zip(&self.scores)
+            .flat_map(|(p, &s)| [(p[0] - cx) / scale, (p[1] - cy) / scale, s])
+            .collect()
+    }
+}
+
+/// Reads a pair file: a safetensors file with `keypoints0/1` `[K,2]`, `scores0/1` `[K]`
+/// (optional), `descriptors0/1` `[K,D]` and `image_size0/1` `[2]` (width, height),
+/// all f32 — the input format of the SPEC test vectors.
+pub fn read_pair_file(path: impl AsRef<Path>) -> Result<(Features, Features)> {
+    let path = path.as_ref();
+    let bytes = std::fs::read(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
+    read_pair_bytes(&bytes)
+}
+
+/// [`read_pair_file`] from bytes.
+pub fn read_pair_bytes(bytes: &[u8]) -> Result<(Features, Features)> {
+    let st = SafeTensors::deserialize(bytes).map_err(|e| Error::WeightsFormat(e.to_string()))?;
+    let get = |name: &str| -> Result<Option<(Vec<usize>, Vec<f32>)>> {
+        let Ok(view) = st.tensor(name) else { return Ok(None) };
+        if view.dtype() != Dtype::F32 {
+            return Err(Error::input(name, format!("expected F32, got {:?}", view.dtype())));
+        }
+        let data = view.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        Ok(Some((view.shape().to_vec(), data)))
+    };
+    let need = |name: &str| -> Result<(Vec<usize>, Vec<f32>)> {
+        get(name)?.ok_or_else(|| Error::input(name, "missing from pair file"))
+    };
+    let one = |i: usize| -> Result<Features> {
+        let (kshape, k) = need(&format!("keypoints{i}"))?;
+        if kshape.len() != 2 || kshape[1] != 2 {
+            return Err(Error::input(format!("keypoints{i}"), format!("expected shape [K, 2], got {kshape:?}")));
+        }
+        let (dshape, d) = need(&format!("descriptors{i}"))?;
+        if dshape.len() != 2 {
+            return Err(Error::input(format!("descriptors{i}"), format!("expected shape [K, D], got {dshape:?}")));
+        }
+        let (_, size) = need(&format!("image_size{i}"))?;
+        if size.len() != 2 {
+            return Err(Error::input(format!("image_size{i}"), "expected 2 values (width, height)"));
+        }
+        let scores = get(&format!("scores{i}"))?.map(|(_, s)| s);
+        let kpts = k.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
+        Ok(Features::new(kpts, scores, d, dshape[1], (size[0], size[1])))
+    };
+    Ok((one(0)?, one(1)?))
+}

@@ -1,0 +1,132 @@
+//! SuperGlue's optimal matching layer (SPEC §8): couplings with a dustbin row and
+//! column, and log-domain Sinkhorn normalisation.
+
+/// A dense row-major `f32` matrix.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Matrix {
+    pub rows: usize,
+    pub cols: usize,
+    pub data: Vec<f32>,
+}
+
+impl Matrix {
+    pub fn get(&self, r: usize, c: usize) -> f32 {
+        self.data[r * self.cols + c]
+    }
+
+    pub fn row(&self, r: usize) -> &[f32] {
+        &self.data[r * self.cols..(r + 1) * self.cols]
+    }
+}
+
+/// `log Σ exp(a_j + b_j)`, stable for `-inf` entries.
+fn logsumexp_plus(a: &[f32], b: &[f32]) -> f32 {
+    let m = a.iter().zip(b).map(|(x, y)| x + y).fold(f32::NEG_INFINITY, f32::max);
+    if m == f32::NEG_INFINITY {
+        return m;
+    }
+    let s: f32 = a.iter().zip(b).map(|(x, y)| (x + y - m).exp()).sum();
+    m + s.ln()
+}
+
+/// The log assignment `P` `[M+1, N+1]` for scores `S` `[M, N]` (row-major) and the
+/// dustbin score, after `iters` Sinkhorn iterations.
+pub fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32, iters: usize) -> Matrix {
+    let (r, c) = (m + 1, n + 1);
+    let mut z = vec![bin_score; r * c];
+    for i in 0..m {
+        z[i * c..i * c + n].copy_from_slice(&scores[i * n..(i + 1) * n]);
+    }
+    // A transposed copy keeps the column logsumexp contiguous.
+    let mut zt = vec![0.0f32; r * c];
+    for i in 0..r {
+        for j in 0..c {
+            zt[j * r + i] = z[i * c + j];
+        }
+    }
+    let (mf, nf) = (m as f32, n as f32);
+    let norm = -(mf + nf).ln();
+    let mut log_mu = vec![norm; r];
+    log_mu[m] = nf.ln() + norm;
+    let mut log_nu = vec![norm; c];
+    log_nu[n] = mf.ln() + norm;
+    let mut u = vec![0.0f32; r];
+    let mut v = vec![0.0f32; c];
+    for _ in 0..iters {
+        for i in 0..r {
+            u[i] = log_mu[i] - logsumexp_plus(&z[i * c..(i + 1) * c], &v);
+        }
+        for j in 0..c {
+            v[j] = log_nu[j] - logsumexp_plus(&zt[j * r..(j + 1) * r], &u);
+        }
+    }
+    for i in 0..r {
+        for j in 0..c {
+            z[i * c + j] += u[i] + v[j] - norm;
+        }
+    }
+    Matrix { rows: r, cols: c, data: z }
+}
+
+/// Mutual-best matches from a log assignment (SPEC §8).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Matches {
+    pub matches0: Vec<i64>,
+    pub matches1: Vec<i64>,
+    pub matching_scores0: Vec<f32>,
+    pub matching_scores1: Vec<f32>,
+}
+
+impl Matches {
+    /// Every keypoint unmatched.
+    pub fn none(m: usize, n: usize) -> Self {
+        Self { matches0: vec![-1; m], matches1: vec![-1; n], matching_scores0: vec![0.0; m], matching_scores1: vec![0.0; n] }
+    }
+}
+
+/// Row and column maxima of the inner block, mutual check and threshold.
+pub fn extract_matches(p: &Matrix, threshold: f32) -> Matches {
+    let (m, n) = (p.rows - 1, p.cols - 1);
+    if m == 0 || n == 0 {
+        return Matches::none(m, n);
+    }
+    let mut max0 = vec![f32::NEG_INFINITY; m];
+    let mut idx0 = vec![0usize; m];
+    let mut max1 = vec![f32::NEG_INFINITY; n];
+    let mut idx1 = vec![0usize; n];
+    for i in 0..m {
+        for (j, &val) in p.row(i)[..n].iter().enumerate() {
+            // Strict `>` keeps the first maximum, like argmax.
+            if val > max0[i] {
+                max0[i] = val;
+                idx0[i] = j;
+            }
+            if val > max1[j] {
+                max1[j] = val;
+                idx1[j] = i;
+            }
+        }
+    }
+    let mut out = Matches::none(m, n);
+    let mut valid0 = vec![false; m];
+    for i in 0..m {
+        if idx1[idx0[i]] == i {
+            let score = max0[i].exp();
+            out.matching_scores0[i] = score;
+            if score > threshold {
+                valid0[i] = true;
+                out.matches0[i] = idx0[i] as i64;
+            }
+        }
+    }
+    for j in 0..n {
+        let i = idx1[j];
+        if idx0[i] == j {
+            out.matching_scores1[j] = out.matching_scores0[i];
+            if valid0[i] {
+                out.matches1[j] = i as i64;
+            }
+        }
+    }
+    out
+}
