@@ -1,0 +1,384 @@
+"""ParaFormer, ParaFormer-U and SuperGlue in PyTorch, written from SPEC.md.
+
+Module and parameter names equal the SPEC tensor names, so ``state_dict()`` (less
+BatchNorm's ``num_batches_tracked``) is a valid weights file. Tensors are batched
+``[B, K, C]``; every image of a batch has the same K.
+"""
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+from torch import nn
+
+DEFAULTS = {
+    "model": "paraformer",
+    "descriptor_dim": 256,
+    "dim": 256,
+    "num_heads": 4,
+    "num_layers": 9,
+    "layer_names": ["self", "cross"] * 9,
+    "positional_encoding": None,  # "mlp" for superglue, "wave" otherwise
+    "stage_depths": [2, 1, 2, 1, 2],
+    "stage_dims": [256, 384, 128, 384, 256],
+    "pooling": "attentional",
+    "parallel": {"share_qkv": True, "share_merge": True, "share_attention_weights": True},
+    "pooling_seed": 0,
+    "sinkhorn_iterations": 100,
+    "match_threshold": 0.2,
+}
+
+
+def resolve_config(config: dict) -> dict:
+    """Fills SPEC §9 defaults; unknown fields are an error."""
+    unknown = set(config) - set(DEFAULTS)
+    if unknown:
+        raise ValueError(f"unknown config fields: {sorted(unknown)}")
+    cfg = copy.deepcopy(DEFAULTS)
+    for key, value in config.items():
+        if key == "parallel":
+            bad = set(value) - set(DEFAULTS["parallel"])
+            if bad:
+                raise ValueError(f"unknown parallel switches: {sorted(bad)}")
+            cfg["parallel"].update(value)
+        else:
+            cfg[key] = copy.deepcopy(value)
+    if cfg["model"] not in ("paraformer", "paraformer_u", "superglue"):
+        raise ValueError(f"unknown model {cfg['model']!r}")
+    if cfg["positional_encoding"] is None:
+        cfg["positional_encoding"] = "mlp" if cfg["model"] == "superglue" else "wave"
+    return cfg
+
+
+def model_dim(cfg: dict) -> int:
+    return cfg["stage_dims"][0] if cfg["model"] == "paraformer_u" else cfg["dim"]
+
+
+class BatchNorm(nn.BatchNorm1d):
+    """BatchNorm1d over the channel axis of ``[B, K, C]`` features."""
+
+    def forward(self, x):
+        return super().forward(x.transpose(1, 2)).transpose(1, 2)
+
+
+def mlp(channels: list[int]) -> nn.Sequential:
+    """SPEC §2: Linear, then BatchNorm + ReLU between consecutive Linear layers."""
+    layers: list[nn.Module] = []
+    for i in range(len(channels) - 1):
+        layers.append(nn.Linear(channels[i], channels[i + 1]))
+        if i < len(channels) - 2:
+            layers += [BatchNorm(channels[i + 1]), nn.ReLU()]
+    return nn.Sequential(*layers)
+
+
+def normalize_keypoints(kpts, scores, size):
+    """``[(x−cx)/s, (y−cy)/s, score]`` with ``c = size/2``, ``s = 0.7·max(size)``."""
+    size = size.to(kpts)
+    center = size[:, None, :] / 2
+    scale = 0.7 * size.max(-1).values[:, None, None]
+    return torch.cat([(kpts - center) / scale, scores[..., None]], -1)
+
+
+class KeypointEncoder(nn.Module):
+    def __init__(self, c: int):
+        super().__init__()
+        self.encoder = mlp([3, 32, 64, 128, 256, c])
+
+    def forward(self, desc, pos):
+        return desc + self.encoder(pos)
+
+
+class WavePE(nn.Module):
+    def __init__(self, c: int):
+        super().__init__()
+        self.amplitude = mlp([c, 4 * c, c])
+        self.phase = mlp([3, c // 2, c])
+        self.fuse = mlp([2 * c, 4 * c, c])
+
+    def forward(self, desc, pos):
+        a, theta = self.amplitude(desc), self.phase(pos)
+        return desc + self.fuse(torch.cat([a * torch.cos(theta), a * torch.sin(theta)], -1))
+
+
+def split_heads(x, h):
+    b, k, c = x.shape
+    return x.view(b, k, h, c // h).transpose(1, 2)
+
+
+def merge_heads(x):
+    b, h, k, d = x.shape
+    return x.transpose(1, 2).reshape(b, k, h * d)
+
+
+def scaled_scores(q, k):
+    return q @ k.transpose(-1, -2) / math.sqrt(q.shape[-1])
+
+
+def attention(q, k, v):
+    prob = scaled_scores(q, k).softmax(-1)
+    return merge_heads(prob @ v), prob
+
+
+class Attention(nn.Module):
+    """SuperGlue's multi-headed attention: ``proj.{0,1,2}`` and ``merge``."""
+
+    def __init__(self, c: int, heads: int):
+        super().__init__()
+        self.heads = heads
+        self.proj = nn.ModuleList([nn.Linear(c, c) for _ in range(3)])
+        self.merge = nn.Linear(c, c)
+
+    def forward(self, x, src):
+        q, k, v = (split_heads(p(t), self.heads) for p, t in zip(self.proj, (x, src, src)))
+        return self.merge(attention(q, k, v)[0])
+
+
+class SerialLayer(nn.Module):
+    def __init__(self, c: int, heads: int, kind: str):
+        super().__init__()
+        self.kind = kind
+        self.attn = Attention(c, heads)
+        self.mlp = mlp([2 * c, 2 * c, c])
+
+    def forward(self, x, y):
+        sx, sy = (x, y) if self.kind == "self" else (y, x)
+        dx = self.mlp(torch.cat([x, self.attn(x, sx)], -1))
+        dy = self.mlp(torch.cat([y, self.attn(y, sy)], -1))
+        return x + dx, y + dy
+
+
+class ParallelAttention(nn.Module):
+    def __init__(self, c: int, heads: int, switches: dict):
+        super().__init__()
+        self.heads = heads
+        self.share_qkv = switches["share_qkv"]
+        self.share_merge = switches["share_merge"]
+        self.share_weights = switches["share_attention_weights"]
+        lin3 = lambda: nn.ModuleList([nn.Linear(c, c) for _ in range(3)])  # noqa: E731
+        if self.share_qkv:
+            self.proj = lin3()
+        else:
+            self.self_proj, self.cross_proj = lin3(), lin3()
+        if self.share_merge:
+            self.merge = nn.Linear(c, c)
+        else:
+            self.self_merge, self.cross_merge = nn.Linear(c, c), nn.Linear(c, c)
+
+    def projections(self):
+        if self.share_qkv:
+            return self.proj, self.proj
+        return self.self_proj, self.cross_proj
+
+    def merges(self):
+        if self.share_merge:
+            return self.merge, self.merge
+        return self.self_merge, self.cross_merge
+
+    def forward(self, x, y):
+        sp, cp = self.projections()
+        h = self.heads
+        sh = lambda p, t: split_heads(p(t), h)  # noqa: E731
+        self_x, prob_x = attention(sh(sp[0], x), sh(sp[1], x), sh(sp[2], x))
+        self_y, prob_y = attention(sh(sp[0], y), sh(sp[1], y), sh(sp[2], y))
+        vx, vy = sh(cp[2], x), sh(cp[2], y)
+        s = scaled_scores(sh(cp[0], x), sh(cp[1], y))
+        cross_x = merge_heads(s.softmax(-1) @ vy)
+        if self.share_weights:
+            cross_y = merge_heads(s.transpose(-1, -2).softmax(-1) @ vx)
+        else:
+            cross_y = attention(sh(cp[0], y), sh(cp[1], x), vx)[0]
+        return (self_x, cross_x), (self_y, cross_y), (prob_x, prob_y)
+
+
+class ParallelLayer(nn.Module):
+    def __init__(self, c: int, heads: int, switches: dict):
+        super().__init__()
+        self.attn = ParallelAttention(c, heads, switches)
+        self.fuse = nn.Sequential(nn.Linear(3 * c, 2 * c), nn.LayerNorm(2 * c), nn.GELU(), nn.Linear(2 * c, c))
+
+    def forward(self, x, y):
+        (sx, cx), (sy, cy), probs = self.attn(x, y)
+        m_self, m_cross = self.attn.merges()
+        x2 = x + self.fuse(torch.cat([x, m_self(sx), m_cross(cx)], -1))
+        y2 = y + self.fuse(torch.cat([y, m_self(sy), m_cross(cy)], -1))
+        return x2, y2, probs
+
+
+def splitmix64_indices(n: int, k: int, seed: int) -> list[int]:
+    """Partial Fisher–Yates shuffle of ``0..n`` driven by SplitMix64 (SPEC §7)."""
+    mask = (1 << 64) - 1
+    state = seed & mask
+    a = list(range(n))
+    for t in range(k):
+        state = (state + 0x9E3779B97F4A7C15) & mask
+        z = state
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+        z ^= z >> 31
+        j = t + z % (n - t)
+        a[t], a[j] = a[j], a[t]
+    return a[:k]
+
+
+class Pool(nn.Module):
+    def __init__(self, c_in: int, c_out: int, kind: str, seed: int, index: int):
+        super().__init__()
+        self.kind, self.seed, self.index = kind, seed, index
+        self.proj = nn.Linear(c_in, c_out)
+        if kind == "gpool":
+            self.score = nn.Parameter(torch.randn(c_in) / math.sqrt(c_in))
+
+    def forward(self, x, prob, image: int):
+        b, n, _ = x.shape
+        k = (n + 1) // 2
+        if self.kind == "random":
+            seed = 4 * self.seed + 2 * self.index + image
+            idx = torch.tensor(splitmix64_indices(n, k, seed), device=x.device).expand(b, k)
+            gate = None
+        else:
+            if self.kind == "attentional":
+                s = prob.sum(-2).mean(1)  # column sums, mean over heads: [B, K]
+            else:
+                s = x @ self.score / self.score.norm()
+            # Descending, ties by lower index: a stable sort of −s.
+            idx = torch.sort(-s, dim=-1, stable=True).indices[:, :k]
+            gate = torch.sigmoid(s.gather(1, idx))[..., None]
+        rows = x.gather(1, idx[..., None].expand(-1, -1, x.shape[-1]))
+        out = self.proj(rows)
+        return (out if gate is None else out * gate), idx
+
+
+class Unpool(nn.Module):
+    def __init__(self, c_in: int, c_out: int):
+        super().__init__()
+        self.proj = nn.Linear(c_in, c_out)
+
+    def forward(self, x, idx, skip):
+        u = self.proj(x)
+        return torch.zeros_like(skip).scatter(1, idx[..., None].expand(-1, -1, u.shape[-1]), u) + skip
+
+
+class Stage(nn.Module):
+    def __init__(self, c: int, depth: int, heads: int, switches: dict):
+        super().__init__()
+        self.layers = nn.ModuleList([ParallelLayer(c, heads, switches) for _ in range(depth)])
+
+    def forward(self, x, y):
+        probs = None
+        for layer in self.layers:
+            x, y, probs = layer(x, y)
+        return x, y, probs
+
+
+def log_optimal_transport(scores, bin_score, iters: int):
+    """SPEC §8 log-domain Sinkhorn with dustbins; ``scores`` ``[B, M, N]``."""
+    b, m, n = scores.shape
+    one = scores.new_tensor(1)
+    ms, ns = m * one, n * one
+    bins0 = bin_score.expand(b, m, 1)
+    bins1 = bin_score.expand(b, 1, n)
+    alpha = bin_score.expand(b, 1, 1)
+    z = torch.cat([torch.cat([scores, bins0], -1), torch.cat([bins1, alpha], -1)], 1)
+    norm = -(ms + ns).log()
+    log_mu = torch.cat([norm.expand(m), ns.log()[None] + norm]).expand(b, -1)
+    log_nu = torch.cat([norm.expand(n), ms.log()[None] + norm]).expand(b, -1)
+    u, v = torch.zeros_like(log_mu), torch.zeros_like(log_nu)
+    for _ in range(iters):
+        u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)
+        v = log_nu - torch.logsumexp(z + u[:, :, None], dim=1)
+    return z + u[:, :, None] + v[:, None, :] - norm
+
+
+def extract_matches(p, threshold: float):
+    """SPEC §8 mutual-best matches from a log assignment ``[B, M+1, N+1]``."""
+    inner = p[:, :-1, :-1]
+    max0, max1 = inner.max(2), inner.max(1)
+    idx0, idx1 = max0.indices, max1.indices
+    ar0 = torch.arange(idx0.shape[1], device=p.device)[None]
+    ar1 = torch.arange(idx1.shape[1], device=p.device)[None]
+    mutual0 = ar0 == idx1.gather(1, idx0)
+    mutual1 = ar1 == idx0.gather(1, idx1)
+    zero = inner.new_tensor(0)
+    score0 = torch.where(mutual0, max0.values.exp(), zero)
+    score1 = torch.where(mutual1, score0.gather(1, idx1), zero)
+    valid0 = mutual0 & (score0 > threshold)
+    valid1 = mutual1 & valid0.gather(1, idx1)
+    return {
+        "matches0": torch.where(valid0, idx0, idx0.new_tensor(-1)),
+        "matches1": torch.where(valid1, idx1, idx1.new_tensor(-1)),
+        "matching_scores0": score0,
+        "matching_scores1": score1,
+    }
+
+
+class Matcher(nn.Module):
+    """The whole network; ``config`` is a SPEC §9 dict (missing fields take defaults)."""
+
+    def __init__(self, config: dict | None = None):
+        super().__init__()
+        cfg = self.config = resolve_config(config or {})
+        c, heads = model_dim(cfg), cfg["num_heads"]
+        if cfg["descriptor_dim"] != c:
+            self.input_proj = nn.Linear(cfg["descriptor_dim"], c)
+        if cfg["positional_encoding"] == "mlp":
+            self.kenc = KeypointEncoder(c)
+        else:
+            self.wave_pe = WavePE(c)
+        if cfg["model"] == "superglue":
+            self.gnn = nn.Module()
+            self.gnn.layers = nn.ModuleList([SerialLayer(c, heads, k) for k in cfg["layer_names"]])
+        elif cfg["model"] == "paraformer":
+            self.layers = nn.ModuleList([ParallelLayer(c, heads, cfg["parallel"]) for _ in range(cfg["num_layers"])])
+        else:
+            dims, depths = cfg["stage_dims"], cfg["stage_depths"]
+            self.stages = nn.ModuleList([Stage(dims[s], depths[s], heads, cfg["parallel"]) for s in range(5)])
+            self.pools = nn.ModuleList(
+                [Pool(dims[p], dims[p + 1], cfg["pooling"], cfg["pooling_seed"], p) for p in range(2)])
+            self.unpools = nn.ModuleList([Unpool(dims[q + 2], dims[q + 3]) for q in range(2)])
+        self.final_proj = nn.Linear(c, c)
+        self.bin_score = nn.Parameter(torch.tensor(1.0))
+
+    def encode(self, kpts, scores, desc, size):
+        if hasattr(self, "input_proj"):
+            desc = self.input_proj(desc)
+        pos = normalize_keypoints(kpts, scores, size)
+        enc = self.kenc if hasattr(self, "kenc") else self.wave_pe
+        return enc(desc, pos)
+
+    def body(self, x, y):
+        model = self.config["model"]
+        if model == "superglue":
+            for layer in self.gnn.layers:
+                x, y = layer(x, y)
+        elif model == "paraformer":
+            for layer in self.layers:
+                x, y, _ = layer(x, y)
+        else:
+            skips, indices = [], []
+            for p in range(2):
+                x, y, probs = self.stages[p](x, y)
+                px, py = probs if probs is not None else (None, None)
+                skips.append((x, y))
+                (x, ix), (y, iy) = self.pools[p](x, px, 0), self.pools[p](y, py, 1)
+                indices.append((ix, iy))
+            for q in range(2):
+                x, y, _ = self.stages[2 + q](x, y)
+                (sx, sy), (ix, iy) = skips[1 - q], indices[1 - q]
+                x, y = self.unpools[q](x, ix, sx), self.unpools[q](y, iy, sy)
+            x, y, _ = self.stages[4](x, y)
+        return x, y
+
+    def scores(self, data: dict):
+        x = self.encode(data["keypoints0"], data["scores0"], data["descriptors0"], data["image_size0"])
+        y = self.encode(data["keypoints1"], data["scores1"], data["descriptors1"], data["image_size1"])
+        x, y = self.body(x, y)
+        mx, my = self.final_proj(x), self.final_proj(y)
+        return mx @ my.transpose(1, 2) / math.sqrt(mx.shape[-1])
+
+    def forward(self, data: dict, sinkhorn_iterations: int | None = None) -> dict:
+        """``data``: batched ``keypoints0/1`` [B,K,2], ``scores0/1`` [B,K], ``descriptors0/1``
+        [B,K,D], ``image_size0/1`` [B,2]. Returns ``log_assignment`` and the matches."""
+        iters = self.config["sinkhorn_iterations"] if sinkhorn_iterations is None else sinkhorn_iterations
+        p = log_optimal_transport(self.scores(data), self.bin_score, iters)
+        return {"log_assignment": p, **extract_matches(p, self.config["match_threshold"])}
