@@ -266,6 +266,13 @@ impl Config {
                         self.stage_dims
                     ));
                 }
+                // Attentional pooling reads the last self-attention map of stages 0 and 1.
+                if self.pooling == Pooling::Attentional && (self.stage_depths[0] == 0 || self.stage_depths[1] == 0) {
+                    return err(format!(
+                        "attentional pooling needs stage_depths[0] and stage_depths[1] >= 1, got {:?}",
+                        self.stage_depths
+                    ));
+                }
             }
             _ => check_width("dim", self.dim)?,
         }
@@ -273,5 +280,44 @@ impl Config {
             return err("Wave-PE needs a model width of at least 2".into());
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn absent_fields_take_spec_defaults() {
+        let c = Config::from_json(r#"{"model": "superglue"}"#).expect("valid");
+        assert_eq!(c, Config::superglue());
+        assert_eq!(c.positional_encoding, PositionalEncoding::Mlp);
+        assert_eq!(c.layer_names.len(), 18);
+        let p = Config::from_json("{}").expect("valid");
+        assert_eq!(p.model, ModelKind::Paraformer);
+        assert_eq!(p.positional_encoding, PositionalEncoding::Wave);
+        assert_eq!((p.sinkhorn_iterations, p.match_threshold, p.num_layers), (100, 0.2, 9));
+        let u = Config::from_json(r#"{"model": "paraformer_u", "parallel": {"share_qkv": false}}"#).expect("valid");
+        assert_eq!(u.model_dim(), 256);
+        assert!(!u.parallel.share_qkv && u.parallel.share_merge);
+    }
+
+    #[test]
+    fn json_round_trip_and_presets() {
+        for name in ["superglue", "paraformer", "paraformer_u"] {
+            let c = Config::preset(name).expect("preset");
+            assert_eq!(Config::from_json(&c.to_json()).expect("round trip"), c);
+        }
+        assert!(Config::preset("lightglue").is_err());
+    }
+
+    #[test]
+    fn bad_values_are_named() {
+        let e = Config::from_json(r#"{"dim": 30, "num_heads": 4}"#).expect_err("30 % 4 != 0");
+        assert!(e.to_string().contains("dim = 30"), "{e}");
+        let e = Config::from_json(r#"{"model": "paraformer_u", "stage_dims": [8, 16, 8, 12, 8]}"#).expect_err("skip dims");
+        assert!(e.to_string().contains("skip"), "{e}");
+        let e = Config::from_json(r#"{"pooling": "max"}"#).expect_err("unknown variant");
+        assert!(e.to_string().contains("max"), "{e}");
     }
 }

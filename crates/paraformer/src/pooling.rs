@@ -135,3 +135,35 @@ impl Unpool {
         zeros.index_add(&ids, &u, 0)? + skip
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn splitmix64_reference_values() {
+        // First outputs of SplitMix64 from state 0 (Vigna's reference implementation).
+        let mut r = SplitMix64::new(0);
+        assert_eq!(r.next_u64(), 0xE220_A839_7B1D_CDAF);
+        assert_eq!(r.next_u64(), 0x6E78_9E6A_A1B9_65F4);
+    }
+
+    #[test]
+    fn random_indices_are_a_prefix_of_a_permutation() {
+        let idx = random_indices(11, 6, 42);
+        assert_eq!(idx.len(), 6);
+        let mut sorted = idx.clone();
+        sorted.sort();
+        sorted.dedup();
+        assert_eq!(sorted.len(), 6);
+        assert!(idx.iter().all(|&i| i < 11));
+        assert_eq!(random_indices(11, 6, 42), idx, "deterministic");
+        assert_ne!(random_indices(11, 6, 43), idx, "seed matters");
+    }
+
+    #[test]
+    fn top_k_is_descending_with_ties_to_lower_index() {
+        assert_eq!(top_k(&[0.5, 2.0, 0.5, 2.0, 1.0], 3), vec![1, 3, 4]);
+        assert_eq!(top_k(&[1.0, 1.0, 1.0], 2), vec![0, 1]);
+    }
+}

@@ -130,3 +130,48 @@ pub fn extract_matches(p: &Matrix, threshold: f32) -> Matches {
     }
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scores(m: usize, n: usize) -> Vec<f32> {
+        (0..m * n).map(|i| ((i * 7919 % 113) as f32 / 113.0 - 0.5) * 6.0).collect()
+    }
+
+    #[test]
+    fn marginals_converge_to_mu_and_nu() {
+        let (m, n) = (6, 9);
+        let p = log_optimal_transport(&scores(m, n), m, n, 0.3, 500);
+        // exp(P + norm) has row sums mu and column sums nu; P itself is shifted by −norm.
+        let norm = -((m + n) as f32).ln();
+        let row = |i: usize| p.row(i).iter().map(|v| (v + norm).exp()).sum::<f32>();
+        let col = |j: usize| (0..m + 1).map(|i| (p.get(i, j) + norm).exp()).sum::<f32>();
+        let total = (m + n) as f32;
+        for i in 0..m {
+            assert!((row(i) - 1.0 / total).abs() < 1e-4, "row {i}: {}", row(i));
+        }
+        assert!((row(m) - n as f32 / total).abs() < 1e-4);
+        for j in 0..n {
+            assert!((col(j) - 1.0 / total).abs() < 1e-4, "col {j}: {}", col(j));
+        }
+        assert!((col(n) - m as f32 / total).abs() < 1e-4);
+    }
+
+    #[test]
+    fn clear_diagonal_is_matched_and_threshold_applies() {
+        let n = 5;
+        let mut s = vec![-4.0f32; n * n];
+        for i in 0..n {
+            s[i * n + i] = 6.0;
+        }
+        let p = log_optimal_transport(&s, n, n, 0.0, 100);
+        let m = extract_matches(&p, 0.2);
+        assert_eq!(m.matches0, vec![0, 1, 2, 3, 4]);
+        assert_eq!(m.matches1, vec![0, 1, 2, 3, 4]);
+        let none = extract_matches(&p, 0.999);
+        assert_eq!(none.matches0, vec![-1; n]);
+        // Mutual but below threshold: the score is still reported.
+        assert!(none.matching_scores0.iter().all(|&s| s > 0.5));
+    }
+}
