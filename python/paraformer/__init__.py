@@ -1,0 +1,230 @@
+"""Sparse feature matching with ParaFormer, ParaFormer-U and SuperGlue (Rust core).
+
+>>> import paraformer
+>>> m = paraformer.Matcher.from_file("weights.safetensors")          # doctest: +SKIP
+>>> out = m.match(kpts0, desc0, kpts1, desc1, size0=(640, 480), size1=(640, 480))  # doctest: +SKIP
+>>> out["matches0"]                                                   # doctest: +SKIP
+"""
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Mapping, Sequence, Union
+
+import numpy as np
+
+from ._paraformer import ParaformerError, WeightsError, _Matcher, __version__
+from ._paraformer import flops as _flops
+
+__all__ = ["Matcher", "ParaformerError", "WeightsError", "flops", "__version__"]
+
+ArrayLike = Any
+Output = dict[str, np.ndarray]
+
+
+def _float_array(value: ArrayLike, name: str, shape: str) -> np.ndarray:
+    """``value`` as a float array, or ValueError naming ``name`` and the expected shape."""
+    try:
+        arr = np.asarray(value)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{name}: expected a float32 or float64 array of shape {shape}: {e}") from None
+    if arr.dtype not in (np.float32, np.float64):
+        raise ValueError(f"{name}: expected a float32 or float64 array of shape {shape}, got dtype {arr.dtype}")
+    return arr
+
+
+def _check_finite(arr: np.ndarray, name: str) -> None:
+    if arr.size and not np.isfinite(arr).all():
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        raise ValueError(f"{name}: contains NaN or Inf (first at index {tuple(int(i) for i in bad)})")
+
+
+def _le32(arr: np.ndarray) -> bytes:
+    return np.ascontiguousarray(arr, dtype="<f4").tobytes()
+
+
+def _image(i: int, kpts: ArrayLike, desc: ArrayLike, scores: ArrayLike | None, size: Any, dim: int) -> tuple:
+    """Validates one image's inputs and packs them for the Rust core."""
+    k = _float_array(kpts, f"kpts{i}", "[K, 2]")
+    if k.ndim != 2 or k.shape[1] != 2:
+        raise ValueError(f"kpts{i}: expected shape [K, 2], got {list(k.shape)}")
+    n = k.shape[0]
+    d = _float_array(desc, f"desc{i}", f"[{n}, {dim}]")
+    if d.ndim != 2 or d.shape != (n, dim):
+        raise ValueError(f"desc{i}: expected shape [{n}, {dim}] (K keypoints × descriptor_dim), got {list(d.shape)}")
+    s = None
+    if scores is not None:
+        s = _float_array(scores, f"scores{i}", f"[{n}]")
+        if s.shape != (n,):
+            raise ValueError(f"scores{i}: expected shape [{n}], got {list(s.shape)}")
+    try:
+        sz = np.asarray(size, dtype=np.float64).reshape(-1)
+    except (ValueError, TypeError):
+        raise ValueError(f"size{i}: expected (width, height), got {size!r}") from None
+    if sz.shape != (2,) or not np.isfinite(sz).all() or (sz <= 0).any():
+        raise ValueError(f"size{i}: expected a positive (width, height), got {size!r}")
+    for arr, name in ((k, f"kpts{i}"), (d, f"desc{i}"), (s, f"scores{i}")):
+        if arr is not None:
+            _check_finite(arr, name)
+    return (_le32(k), _le32(d), dim, None if s is None else _le32(s), float(sz[0]), float(sz[1]))
+
+
+def _unpack(raw: dict) -> Output:
+    out = {
+        "matches0": np.frombuffer(raw["matches0"], dtype="<i8").astype(np.int64, copy=False),
+        "matches1": np.frombuffer(raw["matches1"], dtype="<i8").astype(np.int64, copy=False),
+        "matching_scores0": np.frombuffer(raw["matching_scores0"], dtype="<f4").astype(np.float32, copy=False),
+        "matching_scores1": np.frombuffer(raw["matching_scores1"], dtype="<f4").astype(np.float32, copy=False),
+    }
+    if "log_assignment" in raw:
+        data, rows, cols = raw["log_assignment"]
+        out["log_assignment"] = np.frombuffer(data, dtype="<f4").astype(np.float32, copy=False).reshape(rows, cols)
+    return out
+
+
+def _feature_dict(feats: Mapping[str, Any], i: int, dim: int) -> tuple:
+    """LightGlue-style dict (optionally batched with B = 1) → packed image ``i``."""
+    if not isinstance(feats, Mapping):
+        raise ValueError(f"feats{i}: expected a dict with keypoints, descriptors, image_size")
+    missing = [key for key in ("keypoints", "descriptors", "image_size") if key not in feats]
+    if missing:
+        raise ValueError(f"feats{i}: missing {', '.join(missing)}")
+
+    def unbatch(v: Any, ndim: int) -> Any:
+        a = np.asarray(v) if not isinstance(v, np.ndarray) else v
+        return a[0] if a.ndim == ndim + 1 and a.shape[0] == 1 else v
+
+    scores = feats.get("scores", feats.get("keypoint_scores"))
+    return _image(
+        i,
+        unbatch(feats["keypoints"], 2),
+        unbatch(feats["descriptors"], 2),
+        None if scores is None else unbatch(scores, 1),
+        unbatch(feats["image_size"], 1),
+        dim,
+    )
+
+
+class Matcher:
+    """A ParaFormer, ParaFormer-U or SuperGlue matcher. Thread-safe; the GIL is released
+    while it computes.
+
+    Args:
+        config: SPEC §9 config fields (absent ones take the defaults).
+        weights: path of a safetensors weights file, or its bytes.
+    """
+
+    __slots__ = ("_inner", "_dim")
+
+    def __init__(self, config: Mapping[str, Any], weights: Union[str, os.PathLike, bytes]):
+        if not isinstance(config, Mapping):
+            raise ValueError(f"config: expected a dict, got {type(config).__name__}")
+        self._set(_Matcher.with_config(json.dumps(dict(config)), weights))
+
+    def _set(self, inner: _Matcher) -> None:
+        self._inner = inner
+        self._dim = int(json.loads(inner.config_json)["descriptor_dim"])
+
+    @classmethod
+    def from_file(cls, path: Union[str, os.PathLike]) -> "Matcher":
+        """Loads a weights file whose ``paraformer.config`` metadata holds the config.
+
+        Args:
+            path: path of a safetensors weights file.
+        Returns:
+            The matcher.
+        """
+        m = cls.__new__(cls)
+        m._set(_Matcher.from_file(os.fspath(path)))
+        return m
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "Matcher":
+        """Like ``from_file``, from the bytes of a weights file."""
+        m = cls.__new__(cls)
+        m._set(_Matcher.from_bytes(bytes(data)))
+        return m
+
+    @property
+    def config(self) -> dict:
+        """The config (SPEC §9 fields, every one written out); a fresh dict each time."""
+        return json.loads(self._inner.config_json)
+
+    def __repr__(self) -> str:
+        c = self.config
+        return f"paraformer.Matcher(model={c['model']!r}, descriptor_dim={c['descriptor_dim']})"
+
+    def match(self, kpts0: ArrayLike, desc0: ArrayLike, kpts1: ArrayLike, desc1: ArrayLike, *,
+              size0: Sequence[float], size1: Sequence[float],
+              scores0: ArrayLike | None = None, scores1: ArrayLike | None = None,
+              return_log_assignment: bool = False) -> Output:
+        """Matches the keypoints of two images.
+
+        Args:
+            kpts0, kpts1: ``[M, 2]`` / ``[N, 2]`` pixel coordinates (x, y), float32 or float64.
+            desc0, desc1: ``[M, D]`` / ``[N, D]`` descriptors, ``D = config["descriptor_dim"]``.
+            size0, size1: image sizes ``(width, height)``.
+            scores0, scores1: optional ``[M]`` / ``[N]`` detection scores (default 1.0).
+            return_log_assignment: also return the ``[M+1, N+1]`` log assignment.
+        Returns:
+            ``matches0`` int64 ``[M]`` (−1 = unmatched), ``matches1`` int64 ``[N]``,
+            ``matching_scores0/1`` float32, and ``log_assignment`` float32 when asked for.
+        """
+        f0 = _image(0, kpts0, desc0, scores0, size0, self._dim)
+        f1 = _image(1, kpts1, desc1, scores1, size1, self._dim)
+        return _unpack(self._inner.match_pair(f0, f1, bool(return_log_assignment)))
+
+    def match_dicts(self, feats0: Mapping[str, Any], feats1: Mapping[str, Any], *,
+                    return_log_assignment: bool = False) -> Output:
+        """Matches LightGlue-style feature dicts.
+
+        Args:
+            feats0, feats1: dicts with ``keypoints`` ``[K, 2]``, ``descriptors`` ``[K, D]``,
+                ``image_size`` ``(width, height)`` and optional ``scores`` (or
+                ``keypoint_scores``); a leading batch axis of size 1 is accepted.
+            return_log_assignment: also return the log assignment.
+        Returns:
+            The dict that ``match`` returns.
+        """
+        f0, f1 = _feature_dict(feats0, 0, self._dim), _feature_dict(feats1, 1, self._dim)
+        return _unpack(self._inner.match_pair(f0, f1, bool(return_log_assignment)))
+
+    def match_many(self, pairs: Sequence[tuple[Mapping[str, Any], Mapping[str, Any]]], *,
+                   return_log_assignment: bool = False, num_threads: int | None = None) -> list[Output]:
+        """Matches many pairs of feature dicts, in parallel in Rust.
+
+        Args:
+            pairs: ``(feats0, feats1)`` tuples of dicts as ``match_dicts`` takes.
+            return_log_assignment: also return each log assignment.
+            num_threads: worker threads (default: the number of cores).
+        Returns:
+            One output dict per pair, in order.
+        """
+        packed = []
+        for k, pair in enumerate(pairs):
+            try:
+                feats0, feats1 = pair
+                packed.append((_feature_dict(feats0, 0, self._dim), _feature_dict(feats1, 1, self._dim)))
+            except (TypeError, ValueError) as e:
+                raise ValueError(f"pairs[{k}]: {e}") from None
+        if num_threads is not None and num_threads < 1:
+            raise ValueError(f"num_threads: expected a positive int, got {num_threads}")
+        raw = self._inner.match_many(packed, bool(return_log_assignment), num_threads)
+        return [_unpack(r) for r in raw]
+
+
+def flops(config_or_matcher: Union[Matcher, Mapping[str, Any]], m: int, n: int) -> int:
+    """Multiply-accumulates of one forward pass (SPEC §10; the paper's "FLOPs").
+
+    Args:
+        config_or_matcher: a ``Matcher`` or a config dict.
+        m: keypoints of image 0.
+        n: keypoints of image 1.
+    Returns:
+        The MAC count (0 when ``m`` or ``n`` is 0: the network is not run).
+    """
+    cfg = config_or_matcher.config if isinstance(config_or_matcher, Matcher) else dict(config_or_matcher)
+    for name, v in (("m", m), ("n", n)):
+        if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0:
+            raise ValueError(f"{name}: expected a non-negative int, got {v!r}")
+    return sum(_flops(json.dumps(cfg), int(m), int(n)))

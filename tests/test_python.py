@@ -1,0 +1,298 @@
+"""The Python module: parity on every fixture, every bad-input class, thread safety,
+memory, match_many, flops, the exception hierarchy and the type stubs.
+
+Parity tolerance: identical matches; log_assignment and matching scores within 1e-4 absolute.
+"""
+import gc
+import json
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import paraformer
+from conftest import DATA, index, load_case
+
+TOL = 1e-4
+
+
+def args(c):
+    return (c["keypoints0"], c["descriptors0"], c["keypoints1"], c["descriptors1"])
+
+
+def kw(c, **extra):
+    return dict(size0=c["image_size0"], size1=c["image_size1"], scores0=c["scores0"], scores1=c["scores1"], **extra)
+
+
+def feats(c, i):
+    return {"keypoints": c[f"keypoints{i}"], "descriptors": c[f"descriptors{i}"],
+            "image_size": c[f"image_size{i}"], "scores": c[f"scores{i}"]}
+
+
+_matchers = {}
+
+
+def matcher_for(path: Path) -> paraformer.Matcher:
+    if path not in _matchers:
+        _matchers[path] = paraformer.Matcher.from_file(path)
+    return _matchers[path]
+
+
+@pytest.mark.parametrize("folder,entry", index("spec_vectors") + index("golden"),
+                         ids=lambda v: v["case"] if isinstance(v, dict) else None)
+def test_fixture_parity(folder, entry):
+    m = matcher_for(folder / entry["weights"])
+    c = load_case(folder / entry["case"])
+    out = m.match(*args(c), **kw(c, return_log_assignment=True))
+    assert out["matches0"].dtype == np.int64 and out["matches0"].shape == (entry["M"],)
+    assert out["matches1"].dtype == np.int64 and out["matches1"].shape == (entry["N"],)
+    assert out["matching_scores0"].dtype == np.float32
+    assert out["log_assignment"].shape == (entry["M"] + 1, entry["N"] + 1)
+    np.testing.assert_array_equal(out["matches0"], c["matches0"])
+    np.testing.assert_array_equal(out["matches1"], c["matches1"])
+    assert np.abs(out["log_assignment"] - c["log_assignment"]).max() <= TOL
+    assert np.abs(out["matching_scores0"] - c["matching_scores0"]).max() <= TOL
+    assert np.abs(out["matching_scores1"] - c["matching_scores1"]).max() <= TOL
+
+
+def test_config_and_constructors(golden_weights):
+    m = paraformer.Matcher.from_file(golden_weights)
+    cfg = m.config
+    assert cfg["model"] == "paraformer" and cfg["descriptor_dim"] == 16 and cfg["num_layers"] == 3
+    assert set(cfg) >= {"dim", "num_heads", "positional_encoding", "parallel", "sinkhorn_iterations", "match_threshold"}
+    cfg["dim"] = 999  # a copy: the matcher is unchanged
+    assert m.config["dim"] == 16
+    data = golden_weights.read_bytes()
+    explicit = dict(m.config, match_threshold=0.9)
+    for w in (str(golden_weights), golden_weights, data):
+        assert paraformer.Matcher(explicit, w).config["match_threshold"] == pytest.approx(0.9)
+    assert paraformer.Matcher.from_bytes(data).config == m.config
+
+
+def test_float64_and_fortran_order_give_the_same_result(golden_weights, golden_case):
+    m = paraformer.Matcher.from_file(golden_weights)
+    c = golden_case
+    ref = m.match(*args(c), **kw(c))
+    f64 = [np.asfortranarray(a.astype(np.float64)) for a in args(c)]
+    out = m.match(*f64, size0=(640, 480), size1=[512.0, 384.0],
+                  scores0=c["scores0"].astype(np.float64), scores1=list(c["scores1"]))
+    for k in ref:
+        np.testing.assert_allclose(out[k], ref[k], atol=1e-6)
+
+
+def test_match_dicts_accepts_lightglue_style_batched_dicts(golden_weights, golden_case):
+    m = paraformer.Matcher.from_file(golden_weights)
+    c = golden_case
+    ref = m.match(*args(c), **kw(c))
+    f0 = {k: np.asarray(v)[None] for k, v in feats(c, 0).items()}
+    f1 = dict(feats(c, 1))
+    f1["keypoint_scores"] = f1.pop("scores")
+    out = m.match_dicts(f0, f1)
+    for k in ref:
+        np.testing.assert_array_equal(out[k], ref[k])
+
+
+def test_match_many_equals_a_loop(golden_weights):
+    m = paraformer.Matcher.from_file(golden_weights)
+    cases = [load_case(DATA / "golden" / f"paraformer.case{k}.safetensors") for k in range(3)] * 3
+    pairs = [(feats(c, 0), feats(c, 1)) for c in cases]
+    many = m.match_many(pairs, return_log_assignment=True)
+    assert len(many) == len(pairs)
+    for (f0, f1), got in zip(pairs, many):
+        want = m.match_dicts(f0, f1, return_log_assignment=True)
+        for k in want:
+            np.testing.assert_array_equal(got[k], want[k])
+    assert m.match_many([]) == []
+    one_thread = m.match_many(pairs, num_threads=1)
+    for a, b in zip(one_thread, many):
+        np.testing.assert_array_equal(a["matches0"], b["matches0"])
+
+
+# ---- bad inputs: ValueError naming the argument and the expected shape -----------
+
+def bad(m, c, expect, **changes):
+    a = dict(zip(("kpts0", "desc0", "kpts1", "desc1"), args(c)))
+    k = kw(c)
+    for key, v in changes.items():
+        (a if key in a else k)[key] = v
+    with pytest.raises(ValueError) as e:
+        m.match(a["kpts0"], a["desc0"], a["kpts1"], a["desc1"], **k)
+    for needle in expect:
+        assert needle in str(e.value), str(e.value)
+
+
+def test_wrong_shapes(golden_weights, golden_case):
+    m, c = paraformer.Matcher.from_file(golden_weights), golden_case
+    M = len(c["keypoints0"])
+    bad(m, c, ["kpts0", "[K, 2]"], kpts0=c["keypoints0"][:, :1])
+    bad(m, c, ["kpts1", "[K, 2]"], kpts1=c["keypoints1"].reshape(-1))
+    bad(m, c, ["desc0", f"[{M}, 16]"], desc0=c["descriptors0"][:, :8])  # descriptor width
+    bad(m, c, ["desc0", f"[{M}, 16]"], desc0=c["descriptors0"][:-1])    # rows
+    bad(m, c, ["scores0", f"[{M}]"], scores0=c["scores0"][:-2])
+    bad(m, c, ["size1", "(width, height)"], size1=(640,))
+    bad(m, c, ["size0", "positive"], size0=(0, 480))
+
+
+def test_nan_and_inf(golden_weights, golden_case):
+    m, c = paraformer.Matcher.from_file(golden_weights), golden_case
+    k = c["keypoints0"].copy(); k[4, 0] = np.nan
+    bad(m, c, ["kpts0", "NaN or Inf", "(4, 0)"], kpts0=k)
+    d = c["descriptors1"].copy(); d[2, 3] = np.inf
+    bad(m, c, ["desc1", "NaN or Inf"], desc1=d)
+    s = c["scores1"].copy(); s[0] = -np.inf
+    bad(m, c, ["scores1", "NaN or Inf"], scores1=s)
+    bad(m, c, ["size0"], size0=(np.nan, 480))
+
+
+def test_wrong_dtype_and_non_numeric(golden_weights, golden_case):
+    m, c = paraformer.Matcher.from_file(golden_weights), golden_case
+    bad(m, c, ["kpts0", "float32 or float64", "int64"], kpts0=c["keypoints0"].astype(np.int64))
+    bad(m, c, ["desc1", "float32 or float64"], desc1=c["descriptors1"].astype(np.float16))
+    bad(m, c, ["kpts1", "float32 or float64"], kpts1=[["a", "b"]])
+    bad(m, c, ["desc0"], desc0=None)
+    bad(m, c, ["kpts0"], kpts0=[[1.0, 2.0], [3.0]])  # ragged
+    bad(m, c, ["scores0"], scores0="high")
+    bad(m, c, ["size1"], size1="640x480")
+    with pytest.raises(ValueError, match="feats1: missing descriptors"):
+        m.match_dicts(feats(c, 0), {"keypoints": c["keypoints1"], "image_size": (1, 1)})
+    with pytest.raises(ValueError, match=r"pairs\[1\]"):
+        m.match_many([(feats(c, 0), feats(c, 1)), (feats(c, 0), {"keypoints": 1})])
+
+
+def test_zero_and_one_keypoint(golden_weights, golden_case):
+    m, c = paraformer.Matcher.from_file(golden_weights), golden_case
+    e2, ed = np.zeros((0, 2), np.float32), np.zeros((0, 16), np.float32)
+    out = m.match(e2, ed, c["keypoints1"], c["descriptors1"], size0=(640, 480), size1=(512, 384),
+                  return_log_assignment=True)
+    assert out["matches0"].shape == (0,)
+    assert (out["matches1"] == -1).all() and (out["matching_scores1"] == 0).all()
+    assert out["log_assignment"].shape == (1, len(c["keypoints1"]) + 1)
+    out = m.match(c["keypoints0"], c["descriptors0"], e2, ed, size0=(640, 480), size1=(512, 384))
+    assert (out["matches0"] == -1).all() and out["matches1"].shape == (0,)
+    out = m.match(c["keypoints0"][:1], c["descriptors0"][:1], c["keypoints1"][:1], c["descriptors1"][:1],
+                  size0=(640, 480), size1=(512, 384))
+    assert out["matches0"].shape == (1,) and out["matches1"].shape == (1,)
+    assert 0.0 <= float(out["matching_scores0"][0]) <= 1.0
+
+
+# ---- weights files and configs ---------------------------------------------------
+
+def test_exception_hierarchy():
+    assert issubclass(paraformer.WeightsError, paraformer.ParaformerError)
+    assert issubclass(paraformer.ParaformerError, Exception)
+    assert paraformer.WeightsError.__module__ == "paraformer"
+    assert {"Matcher", "ParaformerError", "WeightsError", "flops", "__version__"} <= set(paraformer.__all__)
+
+
+def test_missing_file_is_file_not_found(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.safetensors"):
+        paraformer.Matcher.from_file(tmp_path / "nope.safetensors")
+    with pytest.raises(FileNotFoundError):
+        paraformer.Matcher({"model": "paraformer"}, str(tmp_path / "nope.safetensors"))
+
+
+def test_truncated_corrupted_and_foreign_files(golden_weights, tmp_path):
+    data = golden_weights.read_bytes()
+    for blob in (data[: len(data) // 2], data[:7], b"", b"\x89PNG\r\n\x1a\n" + bytes(100), b"{}" * 50):
+        p = tmp_path / "w.safetensors"
+        p.write_bytes(blob)
+        with pytest.raises(paraformer.WeightsError):
+            paraformer.Matcher.from_file(p)
+        with pytest.raises(paraformer.ParaformerError):
+            paraformer.Matcher.from_bytes(blob)
+
+
+def test_mismatched_weights_list_every_tensor(golden_weights):
+    sg = (DATA / "golden" / "superglue.weights.safetensors").read_bytes()
+    cfg = dict(paraformer.Matcher.from_file(golden_weights).config)
+    with pytest.raises(paraformer.WeightsError) as e:
+        paraformer.Matcher(cfg, sg)
+    msg = str(e.value)
+    assert "missing tensor `wave_pe.amplitude.0.weight`" in msg
+    assert "unexpected tensor `gnn.layers.0.attn.merge.weight`" in msg
+    cfg["dim"] = 32  # right names, wrong shapes
+    with pytest.raises(paraformer.WeightsError, match=r"`final_proj.weight` has shape \[16, 16\], expected \[32, 32\]"):
+        paraformer.Matcher(cfg, golden_weights.read_bytes())
+
+
+def test_bad_config_dicts_are_value_errors(golden_weights):
+    w = golden_weights.read_bytes()
+    for cfg, needle in (({"model": "paraformer", "colour": 1}, "colour"),
+                        ({"model": "lightglue"}, "lightglue"),
+                        ({"dim": 30}, "num_heads"),
+                        ([1, 2], "config")):
+        with pytest.raises(ValueError, match=needle):
+            paraformer.Matcher(cfg, w)
+
+
+def test_flops():
+    assert paraformer.flops({"model": "paraformer"}, 2048, 2048) / 1e9 == pytest.approx(105.9, abs=0.05)
+    assert paraformer.flops({"model": "superglue"}, 2048, 2048) / 1e9 == pytest.approx(127.4, abs=0.05)
+    assert paraformer.flops({"model": "paraformer_u"}, 2048, 2048) / 1e9 == pytest.approx(65.8, abs=0.05)
+    m = paraformer.Matcher.from_file(DATA / "golden" / "paraformer.weights.safetensors")
+    assert paraformer.flops(m, 10, 12) == paraformer.flops(m.config, 10, 12) > 0
+    assert paraformer.flops(m, 0, 12) == 0
+    with pytest.raises(ValueError, match="m"):
+        paraformer.flops(m, -1, 3)
+    with pytest.raises(ValueError, match="unknown"):
+        paraformer.flops({"model": "paraformer", "depth": 3}, 1, 1)
+
+
+# ---- threads and memory ------------------------------------------------------------
+
+def test_threads_give_identical_results(golden_weights, golden_case):
+    m, c = paraformer.Matcher.from_file(golden_weights), golden_case
+    ref = m.match(*args(c), **kw(c, return_log_assignment=True))
+    errors, results = [], []
+
+    def work():
+        try:
+            for _ in range(40):
+                results.append(m.match(*args(c), **kw(c, return_log_assignment=True)))
+        except Exception as e:  # pragma: no cover - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert len(results) == 160
+    for r in results:
+        for k in ref:
+            np.testing.assert_array_equal(r[k], ref[k])
+
+
+def rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="needs /proc to read the resident set size")
+def test_no_memory_growth_over_2000_calls(golden_weights, golden_case):
+    m, c = paraformer.Matcher.from_file(golden_weights), golden_case
+    for _ in range(200):  # warm up allocator pools
+        m.match(*args(c), **kw(c, return_log_assignment=True))
+    gc.collect()
+    before = rss_bytes()
+    for _ in range(2000):
+        m.match(*args(c), **kw(c, return_log_assignment=True))
+    gc.collect()
+    growth = rss_bytes() - before
+    # One call allocates ~20 KB of outputs; a leak of one output per call would be ~40 MB.
+    assert growth < 8 * 2**20, f"resident memory grew by {growth / 2**20:.1f} MiB over 2000 calls"
+
+
+# ---- stubs --------------------------------------------------------------------------
+
+def test_type_stubs_match_the_module():
+    pytest.importorskip("mypy", reason="mypy not installed: stubtest skipped")
+    r = subprocess.run([sys.executable, "-m", "mypy.stubtest", "paraformer._paraformer"],
+                       capture_output=True, text=True, cwd=Path(__file__).parent)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert (Path(paraformer.__file__).parent / "py.typed").exists()
