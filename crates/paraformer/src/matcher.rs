@@ -6,7 +6,7 @@ use std::path::Path;
 use candle_core::{Device, Module, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
-use crate::config::{Config, ModelKind, Pooling};
+use crate::config::{Config, ModelKind};
 use crate::error::{Error, Result};
 use crate::features::Features;
 use crate::layers::{ParallelLayer, SerialLayer};
@@ -53,21 +53,14 @@ impl UNet {
     }
 
     pub fn forward(&self, x: &Tensor, y: &Tensor) -> candle_core::Result<(Tensor, Tensor)> {
-        let no_probs = || candle_core::Error::Msg("attentional pooling needs a stage with at least one layer".into());
         let (mut x, mut y) = (x.clone(), y.clone());
         let mut skips = Vec::with_capacity(2);
         let mut indices = Vec::with_capacity(2);
         for p in 0..2 {
             let (sx, sy, probs) = self.stage(p, x, y)?;
-            let (px, py) = match probs {
-                Some(pr) => pr,
-                // Probabilities are only read by attentional pooling (config validation
-                // guarantees those stages have layers); others get a placeholder.
-                None if self.pools[p].needs_probs() => return Err(no_probs()),
-                None => (sx.clone(), sy.clone()),
-            };
-            let (nx, ix) = self.pools[p].forward(&sx, &px, 0)?;
-            let (ny, iy) = self.pools[p].forward(&sy, &py, 1)?;
+            let (px, py) = (probs.as_ref().map(|p| &p.0), probs.as_ref().map(|p| &p.1));
+            let (nx, ix) = self.pools[p].forward(&sx, px, 0)?;
+            let (ny, iy) = self.pools[p].forward(&sy, py, 1)?;
             skips.push((sx, sy));
             indices.push((ix, iy));
             (x, y) = (nx, ny);
@@ -156,13 +149,6 @@ impl Network {
         let (mx, my) = (self.final_proj.forward(&x)?, self.final_proj.forward(&y)?);
         let s = (mx.matmul(&my.t()?)? / (self.dim as f64).sqrt())?;
         s.flatten_all()?.to_vec1()
-    }
-}
-
-impl Pool {
-    /// Whether this pool reads the stage's self-attention probabilities.
-    pub(crate) fn needs_probs(&self) -> bool {
-        self.kind() == Pooling::Attentional
     }
 }
 

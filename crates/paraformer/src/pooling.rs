@@ -73,14 +73,18 @@ impl Pool {
     }
 
     /// Pools `x` `[K, C_s]` of image `image` (0 = X, 1 = Y) to `[ceil(K/2), C_{s+1}]`.
-    /// `self_probs` `[H, K, K]` are the last self-attention probabilities of the stage.
-    pub fn forward(&self, x: &Tensor, self_probs: &Tensor, image: usize) -> Result<(Tensor, PoolIndex)> {
+    /// `self_probs` `[H, K, K]` are the last self-attention probabilities of the stage
+    /// (needed by attentional pooling only).
+    pub fn forward(&self, x: &Tensor, self_probs: Option<&Tensor>, image: usize) -> Result<(Tensor, PoolIndex)> {
         let n = x.dim(0)?;
         let k = n.div_ceil(2);
         let (rows, gate) = match self.kind {
             Pooling::Attentional => {
+                let probs = self_probs.ok_or_else(|| {
+                    candle_core::Error::Msg("attentional pooling needs a stage with at least one layer".into())
+                })?;
                 // s_j = mean over heads of the column sums of A.
-                let s: Vec<f32> = self_probs.sum(1)?.mean(0)?.to_vec1()?;
+                let s: Vec<f32> = probs.sum(1)?.mean(0)?.to_vec1()?;
                 let rows = top_k(&s, k);
                 let gate = rows.iter().map(|&r| sigmoid(s[r])).collect::<Vec<_>>();
                 (rows, Some(gate))
@@ -104,12 +108,6 @@ impl Pool {
             out = out.broadcast_mul(&Tensor::from_vec(gate, (rows.len(), 1), x.device())?)?;
         }
         Ok((out, PoolIndex { rows, from_len: n }))
-    }
-}
-
-impl Pool {
-    pub(crate) fn kind(&self) -> Pooling {
-        self.kind
     }
 }
 
