@@ -1,73 +1,78 @@
 //! Attention layers: ParaFormer's parallel layer (SPEC §5, paper §"Parallel Attention")
 //! and SuperGlue's serial attentional propagation (SPEC §6).
 
-use candle_core::{Module, Result, Tensor};
-use candle_nn::{LayerNorm, Linear, VarBuilder};
+use candle_core::Result as CResult;
+use candle_nn::VarBuilder;
 
-use crate::attention::{apply, attend, scores, softmax, Attention, Projections};
+use crate::attention::{attention, cross_attention_shared, Attention, Projections};
 use crate::config::{LayerKind, ParallelSwitches};
-use crate::mlp::{cat_channels, Mlp};
+use crate::error::Result;
+use crate::kernels::{gelu, layer_norm, Ctx, Matrix, View};
+use crate::mlp::{add_assign, read, Linear, Mlp};
 
 /// The parallel layer's projections, prefix `attn`. With sharing on, `proj` and
 /// `merge` serve both branches; with it off, `self_*` and `cross_*` are separate.
 #[derive(Debug, Clone)]
 pub struct ParallelAttention {
     self_proj: Projections,
-    cross_proj: Projections,
+    cross_proj: Option<Projections>,
     self_merge: Linear,
     cross_merge: Linear,
     share_attention_weights: bool,
+    heads: usize,
 }
 
 impl ParallelAttention {
-    pub fn new(c: usize, heads: usize, sw: ParallelSwitches, vb: VarBuilder) -> Result<Self> {
+    pub fn new(c: usize, heads: usize, sw: ParallelSwitches, vb: VarBuilder) -> CResult<Self> {
         let (self_proj, cross_proj) = if sw.share_qkv {
-            let p = Projections::new(c, heads, vb.pp("proj"))?;
-            (p.clone(), p)
+            (Projections::new(c, vb.pp("proj"))?, None)
         } else {
-            (Projections::new(c, heads, vb.pp("self_proj"))?, Projections::new(c, heads, vb.pp("cross_proj"))?)
+            (Projections::new(c, vb.pp("self_proj"))?, Some(Projections::new(c, vb.pp("cross_proj"))?))
         };
         let (self_merge, cross_merge) = if sw.share_merge {
-            let m = candle_nn::linear(c, c, vb.pp("merge"))?;
+            let m = Linear::new(c, c, vb.pp("merge"))?;
             (m.clone(), m)
         } else {
-            (candle_nn::linear(c, c, vb.pp("self_merge"))?, candle_nn::linear(c, c, vb.pp("cross_merge"))?)
+            (Linear::new(c, c, vb.pp("self_merge"))?, Linear::new(c, c, vb.pp("cross_merge"))?)
         };
-        Ok(Self { self_proj, cross_proj, self_merge, cross_merge, share_attention_weights: sw.share_attention_weights })
+        Ok(Self { self_proj, cross_proj, self_merge, cross_merge, share_attention_weights: sw.share_attention_weights, heads })
     }
 }
 
-/// Linear(3C→2C) → LayerNorm → GELU(erf) → Linear(2C→C), prefix `fuse`.
+/// Linear(3C→2C) `fuse.0` → LayerNorm `fuse.1` → GELU(erf) → Linear(2C→C) `fuse.3`.
 #[derive(Debug, Clone)]
 pub struct Fuse {
     l0: Linear,
-    l1: LayerNorm,
+    norm_weight: Vec<f32>,
+    norm_bias: Vec<f32>,
     l3: Linear,
 }
 
 impl Fuse {
-    pub fn new(c: usize, vb: VarBuilder) -> Result<Self> {
+    pub fn new(c: usize, vb: VarBuilder) -> CResult<Self> {
+        let n = vb.pp(1);
         Ok(Self {
-            l0: candle_nn::linear(3 * c, 2 * c, vb.pp(0))?,
-            l1: candle_nn::layer_norm(2 * c, 1e-5, vb.pp(1))?,
-            l3: candle_nn::linear(2 * c, c, vb.pp(3))?,
+            l0: Linear::new(3 * c, 2 * c, vb.pp(0))?,
+            norm_weight: read(&n, &[2 * c], "weight")?,
+            norm_bias: read(&n, &[2 * c], "bias")?,
+            l3: Linear::new(2 * c, c, vb.pp(3))?,
         })
     }
-}
 
-impl Module for Fuse {
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.l3.forward(&self.l1.forward(&self.l0.forward(x)?)?.gelu_erf()?)
+    pub fn forward(&self, ctx: &Ctx, x: View) -> Result<Matrix> {
+        let mut h = self.l0.forward(ctx, x)?;
+        layer_norm(&mut h.data, h.cols, &self.norm_weight, &self.norm_bias, 1e-5);
+        gelu(&mut h.data);
+        self.l3.forward(ctx, h.view())
     }
 }
 
-/// Output of one parallel layer: both updated feature sets and the self-attention
-/// probabilities `[H, K, K]` of each image (used by attentional pooling).
+/// Output of one parallel layer: both updated feature sets and, when asked for, the
+/// self-attention column sums `Σ_h Σ_i A[h, i, j]` of each image (attentional pooling).
 pub struct ParallelOutput {
-    pub x: Tensor,
-    pub y: Tensor,
-    pub self_probs_x: Tensor,
-    pub self_probs_y: Tensor,
+    pub x: Matrix,
+    pub y: Matrix,
+    pub col_sums: Option<(Vec<f32>, Vec<f32>)>,
 }
 
 /// One parallel attention layer, prefix `layers.{l}` or `stages.{s}.layers.{j}`.
@@ -78,33 +83,67 @@ pub struct ParallelLayer {
 }
 
 impl ParallelLayer {
-    pub fn new(c: usize, heads: usize, sw: ParallelSwitches, vb: VarBuilder) -> Result<Self> {
+    pub fn new(c: usize, heads: usize, sw: ParallelSwitches, vb: VarBuilder) -> CResult<Self> {
         Ok(Self { attn: ParallelAttention::new(c, heads, sw, vb.pp("attn"))?, fuse: Fuse::new(c, vb.pp("fuse"))? })
     }
 
     /// Self- and cross-attention of both images at once; `x` `[M, C]`, `y` `[N, C]`.
-    pub fn forward(&self, x: &Tensor, y: &Tensor) -> Result<ParallelOutput> {
+    pub fn forward(&self, ctx: &Ctx, x: &Matrix, y: &Matrix, want_col_sums: bool) -> Result<ParallelOutput> {
         let a = &self.attn;
-        let (self_x, self_probs_x) = attend(&a.self_proj.q(x)?, &a.self_proj.k(x)?, &a.self_proj.v(x)?)?;
-        let (self_y, self_probs_y) = attend(&a.self_proj.q(y)?, &a.self_proj.k(y)?, &a.self_proj.v(y)?)?;
-        let (qx, ky, vx, vy) = (a.cross_proj.q(x)?, a.cross_proj.k(y)?, a.cross_proj.v(x)?, a.cross_proj.v(y)?);
-        let s = scores(&qx, &ky)?;
-        let cross_x = apply(&softmax(&s)?, &vy)?;
-        let cross_y = if a.share_attention_weights {
-            apply(&softmax(&s.transpose(1, 2)?.contiguous()?)?, &vx)?
-        } else {
-            attend(&a.cross_proj.q(y)?, &a.cross_proj.k(x)?, &vx)?.0
+        let (h, c) = (a.heads, x.cols);
+        let (px, py) = (a.self_proj.qkv(ctx, x.view())?, a.self_proj.qkv(ctx, y.view())?);
+        fn qkv_of(p: &Matrix, c: usize, i: usize) -> View<'_> {
+            p.view().cols(i * c, (i + 1) * c)
+        }
+        let qkv = |p, i| qkv_of(p, c, i);
+        let (self_x, cs_x) = attention(ctx, qkv(&px, 0), qkv(&px, 1), qkv(&px, 2), h, want_col_sums)?;
+        let (self_y, cs_y) = attention(ctx, qkv(&py, 0), qkv(&py, 1), qkv(&py, 2), h, want_col_sums)?;
+        let (cross_x, cross_y) = match &a.cross_proj {
+            // Shared q/k/v: the cross branch reuses the self projections.
+            None => {
+                if a.share_attention_weights {
+                    cross_attention_shared(ctx, qkv(&px, 0), qkv(&py, 1), qkv(&px, 2), qkv(&py, 2), h)?
+                } else {
+                    let (cx, _) = attention(ctx, qkv(&px, 0), qkv(&py, 1), qkv(&py, 2), h, false)?;
+                    let (cy, _) = attention(ctx, qkv(&py, 0), qkv(&px, 1), qkv(&px, 2), h, false)?;
+                    (cx, cy)
+                }
+            }
+            // Separate cross projections: only those the branch needs (SPEC §10).
+            Some(cp) => {
+                let (qx, ky) = (cp.part(ctx, x.view(), 0, 0)?, cp.part(ctx, y.view(), 1, 1)?);
+                let (vx, vy) = (cp.part(ctx, x.view(), 2, 2)?, cp.part(ctx, y.view(), 2, 2)?);
+                if a.share_attention_weights {
+                    cross_attention_shared(ctx, qx.view(), ky.view(), vx.view(), vy.view(), h)?
+                } else {
+                    let (qy, kx) = (cp.part(ctx, y.view(), 0, 0)?, cp.part(ctx, x.view(), 1, 1)?);
+                    let (cx, _) = attention(ctx, qx.view(), ky.view(), vy.view(), h, false)?;
+                    let (cy, _) = attention(ctx, qy.view(), kx.view(), vx.view(), h, false)?;
+                    (cx, cy)
+                }
+            }
         };
-        let update = |f: &Tensor, s_msg: &Tensor, c_msg: &Tensor| -> Result<Tensor> {
-            let m = cat_channels(&[f, &a.self_merge.forward(s_msg)?, &a.cross_merge.forward(c_msg)?])?;
-            f + self.fuse.forward(&m)?
+        let x2 = self.update(ctx, x, &self_x, &cross_x)?;
+        let y2 = self.update(ctx, y, &self_y, &cross_y)?;
+        let col_sums = match (cs_x, cs_y) {
+            (Some(a), Some(b)) => Some((a, b)),
+            _ => None,
         };
-        Ok(ParallelOutput {
-            x: update(x, &self_x, &cross_x)?,
-            y: update(y, &self_y, &cross_y)?,
-            self_probs_x,
-            self_probs_y,
-        })
+        Ok(ParallelOutput { x: x2, y: y2, col_sums })
+    }
+
+    /// `f + fuse([f, merge(self), merge(cross)])`; the merges write straight into the concat.
+    fn update(&self, ctx: &Ctx, f: &Matrix, self_msg: &Matrix, cross_msg: &Matrix) -> Result<Matrix> {
+        let c = f.cols;
+        let mut cat = Matrix::zeros(f.rows, 3 * c);
+        for (dst, src) in cat.data.chunks_exact_mut(3 * c).zip(f.data.chunks_exact(c)) {
+            dst[..c].copy_from_slice(src);
+        }
+        self.attn.self_merge.forward_into(ctx, self_msg.view(), &mut cat.data[c..], 3 * c)?;
+        self.attn.cross_merge.forward_into(ctx, cross_msg.view(), &mut cat.data[2 * c..], 3 * c)?;
+        let mut out = self.fuse.forward(ctx, cat.view())?;
+        add_assign(&mut out, f);
+        Ok(out)
     }
 }
 
@@ -117,17 +156,27 @@ pub struct SerialLayer {
 }
 
 impl SerialLayer {
-    pub fn new(c: usize, heads: usize, kind: LayerKind, vb: VarBuilder) -> Result<Self> {
+    pub fn new(c: usize, heads: usize, kind: LayerKind, vb: VarBuilder) -> CResult<Self> {
         Ok(Self { attn: Attention::new(c, heads, vb.pp("attn"))?, mlp: Mlp::new(&[2 * c, 2 * c, c], vb.pp("mlp"))?, kind })
     }
 
-    pub fn forward(&self, x: &Tensor, y: &Tensor) -> Result<(Tensor, Tensor)> {
+    fn update(&self, ctx: &Ctx, f: &Matrix, src: &Matrix) -> Result<Matrix> {
+        let c = f.cols;
+        let mut cat = Matrix::zeros(f.rows, 2 * c);
+        for (dst, s) in cat.data.chunks_exact_mut(2 * c).zip(f.data.chunks_exact(c)) {
+            dst[..c].copy_from_slice(s);
+        }
+        self.attn.forward_into(ctx, f.view(), src.view(), &mut cat.data[c..], 2 * c)?;
+        let mut out = self.mlp.forward(ctx, cat.view())?;
+        add_assign(&mut out, f);
+        Ok(out)
+    }
+
+    pub fn forward(&self, ctx: &Ctx, x: &Matrix, y: &Matrix) -> Result<(Matrix, Matrix)> {
         let (src_x, src_y) = match self.kind {
             LayerKind::SelfAttention => (x, y),
             LayerKind::Cross => (y, x),
         };
-        let dx = self.mlp.forward(&cat_channels(&[x, &self.attn.forward(x, src_x)?])?)?;
-        let dy = self.mlp.forward(&cat_channels(&[y, &self.attn.forward(y, src_y)?])?)?;
-        Ok(((x + dx)?, (y + dy)?))
+        Ok((self.update(ctx, x, src_x)?, self.update(ctx, y, src_y)?))
     }
 }

@@ -21,6 +21,7 @@ pub mod config;
 pub mod error;
 pub mod features;
 pub mod flops;
+pub mod kernels;
 pub mod layers;
 pub mod matcher;
 pub mod mlp;
@@ -33,7 +34,7 @@ pub use config::{Config, LayerKind, ModelKind, ParallelSwitches, Pooling, Positi
 pub use error::{Error, Result, TensorProblem};
 pub use features::{read_pair_bytes, read_pair_file, Features};
 pub use flops::{flops, Flops};
-pub use matcher::{MatchOptions, MatchOutput, Matcher};
+pub use matcher::{MatchOptions, MatchOutput, Matcher, Profile};
 pub use sinkhorn::Matrix;
 pub use weights::Weights;
 

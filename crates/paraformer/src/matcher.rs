@@ -3,15 +3,18 @@
 
 use std::path::Path;
 
-use candle_core::{Device, Module, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use std::time::Instant;
+
+use candle_nn::VarBuilder;
 
 use crate::config::{Config, ModelKind};
 use crate::error::{Error, Result};
 use crate::features::Features;
+use crate::kernels::{Ctx, Matrix};
 use crate::layers::{ParallelLayer, SerialLayer};
+use crate::mlp::Linear;
 use crate::pooling::{Pool, Unpool};
-use crate::sinkhorn::{extract_matches, log_optimal_transport, Matches, Matrix};
+use crate::sinkhorn::{extract_matches, log_optimal_transport_inplace, Matches};
 use crate::wave_pe::PositionEncoder;
 use crate::weights::Weights;
 
@@ -22,6 +25,9 @@ pub struct UNet {
     pools: Vec<Pool>,
     unpools: Vec<Unpool>,
 }
+
+/// Features of both images and, when asked for, the last self-attention column sums.
+type StageOutput = (Matrix, Matrix, Option<(Vec<f32>, Vec<f32>)>);
 
 impl UNet {
     pub fn new(cfg: &Config, vb: VarBuilder) -> candle_core::Result<Self> {
@@ -34,7 +40,7 @@ impl UNet {
             })
             .collect::<candle_core::Result<Vec<_>>>()?;
         let pools = (0..2)
-            .map(|p| Pool::new(dims[p], dims[p + 1], cfg.pooling, cfg.pooling_seed, p, vb.pp(format!("pools.{p}"))))
+            .map(|p| Pool::new(dims[p], dims[p + 1], cfg, p, vb.pp(format!("pools.{p}"))))
             .collect::<candle_core::Result<Vec<_>>>()?;
         let unpools = (0..2)
             .map(|q| Unpool::new(dims[q + 2], dims[q + 3], vb.pp(format!("unpools.{q}"))))
@@ -42,37 +48,39 @@ impl UNet {
         Ok(Self { stages, pools, unpools })
     }
 
-    /// Runs a stage; returns the features and the last layer's self-attention probabilities.
-    fn stage(&self, s: usize, x: Tensor, y: Tensor) -> candle_core::Result<(Tensor, Tensor, Option<(Tensor, Tensor)>)> {
-        let (mut x, mut y, mut probs) = (x, y, None);
-        for layer in &self.stages[s] {
-            let o = layer.forward(&x, &y)?;
-            (x, y, probs) = (o.x, o.y, Some((o.self_probs_x, o.self_probs_y)));
+    /// Runs stage `s`; with `col_sums`, returns the last layer's self-attention column sums.
+    fn stage(&self, ctx: &Ctx, s: usize, x: Matrix, y: Matrix, col_sums: bool) -> Result<StageOutput> {
+        let (mut x, mut y, mut sums) = (x, y, None);
+        let depth = self.stages[s].len();
+        for (j, layer) in self.stages[s].iter().enumerate() {
+            let o = layer.forward(ctx, &x, &y, col_sums && j + 1 == depth)?;
+            (x, y, sums) = (o.x, o.y, o.col_sums);
         }
-        Ok((x, y, probs))
+        Ok((x, y, sums))
     }
 
-    pub fn forward(&self, x: &Tensor, y: &Tensor) -> candle_core::Result<(Tensor, Tensor)> {
-        let (mut x, mut y) = (x.clone(), y.clone());
+    pub fn forward(&self, ctx: &Ctx, x: Matrix, y: Matrix) -> Result<(Matrix, Matrix)> {
+        let (mut x, mut y) = (x, y);
         let mut skips = Vec::with_capacity(2);
         let mut indices = Vec::with_capacity(2);
         for p in 0..2 {
-            let (sx, sy, probs) = self.stage(p, x, y)?;
-            let (px, py) = (probs.as_ref().map(|p| &p.0), probs.as_ref().map(|p| &p.1));
-            let (nx, ix) = self.pools[p].forward(&sx, px, 0)?;
-            let (ny, iy) = self.pools[p].forward(&sy, py, 1)?;
+            let pool = &self.pools[p];
+            let (sx, sy, sums) = self.stage(ctx, p, x, y, pool.needs_col_sums())?;
+            let (cx, cy) = (sums.as_ref().map(|s| s.0.as_slice()), sums.as_ref().map(|s| s.1.as_slice()));
+            let (nx, ix) = pool.forward(ctx, &sx, cx, 0)?;
+            let (ny, iy) = pool.forward(ctx, &sy, cy, 1)?;
             skips.push((sx, sy));
             indices.push((ix, iy));
             (x, y) = (nx, ny);
         }
         for q in 0..2 {
-            let (sx, sy, _) = self.stage(2 + q, x, y)?;
+            let (sx, sy, _) = self.stage(ctx, 2 + q, x, y, false)?;
             let (skip_x, skip_y) = &skips[1 - q];
             let (ix, iy) = &indices[1 - q];
-            x = self.unpools[q].forward(&sx, ix, skip_x)?;
-            y = self.unpools[q].forward(&sy, iy, skip_y)?;
+            x = self.unpools[q].forward(ctx, &sx, ix, skip_x)?;
+            y = self.unpools[q].forward(ctx, &sy, iy, skip_y)?;
         }
-        let (x, y, _) = self.stage(4, x, y)?;
+        let (x, y, _) = self.stage(ctx, 4, x, y, false)?;
         Ok((x, y))
     }
 }
@@ -86,6 +94,34 @@ pub enum Body {
     Paraformer(Vec<ParallelLayer>),
     /// `stages`, `pools`, `unpools`.
     ParaformerU(UNet),
+}
+
+/// Wall-clock seconds per part of one `match_pair`, and the multiply-accumulates done.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Profile {
+    /// `input_proj` and position encoder, both images.
+    pub encoder: f64,
+    /// Attention layers (and ParaFormer-U's pooling).
+    pub layers: f64,
+    /// `final_proj` and the score matrix.
+    pub final_projection: f64,
+    /// Sinkhorn iterations.
+    pub sinkhorn: f64,
+    /// Match extraction.
+    pub extraction: f64,
+    /// Multiply-accumulates of every matrix product performed.
+    pub macs: u64,
+}
+
+impl Profile {
+    pub fn total(&self) -> f64 {
+        self.encoder + self.layers + self.final_projection + self.sinkhorn + self.extraction
+    }
+
+    /// Everything but Sinkhorn and match extraction.
+    pub fn network(&self) -> f64 {
+        self.encoder + self.layers + self.final_projection
+    }
 }
 
 /// The whole network, one field per top-level weight prefix.
@@ -103,7 +139,7 @@ impl Network {
     pub fn new(cfg: &Config, vb: VarBuilder) -> candle_core::Result<Self> {
         let c = cfg.model_dim();
         let input_proj =
-            if cfg.descriptor_dim != c { Some(candle_nn::linear(cfg.descriptor_dim, c, vb.pp("input_proj"))?) } else { None };
+            if cfg.descriptor_dim != c { Some(Linear::new(cfg.descriptor_dim, c, vb.pp("input_proj"))?) } else { None };
         let encoder = PositionEncoder::new(cfg.positional_encoding, c, vb.clone())?;
         let body = match cfg.model {
             ModelKind::Superglue => Body::Superglue(
@@ -120,35 +156,44 @@ impl Network {
             ),
             ModelKind::ParaformerU => Body::ParaformerU(UNet::new(cfg, vb.clone())?),
         };
-        let final_proj = candle_nn::linear(c, c, vb.pp("final_proj"))?;
+        let final_proj = Linear::new(c, c, vb.pp("final_proj"))?;
         let bin_score = vb.get((), "bin_score")?.to_scalar::<f32>()?;
         Ok(Self { input_proj, encoder, body, final_proj, bin_score, dim: c })
     }
 
-    fn embed(&self, f: &Features) -> candle_core::Result<Tensor> {
-        let dev = Device::Cpu;
-        let mut d = Tensor::from_slice(&f.descriptors, (f.len(), f.descriptor_dim), &dev)?;
+    fn embed(&self, ctx: &Ctx, f: &Features) -> Result<Matrix> {
+        let mut d = Matrix::from_vec(f.len(), f.descriptor_dim, f.descriptors.clone())?;
         if let Some(p) = &self.input_proj {
-            d = p.forward(&d)?;
+            d = p.forward(ctx, d.view())?;
         }
-        let pos = Tensor::from_vec(f.normalized_positions(), (f.len(), 3), &dev)?;
-        self.encoder.forward(&d, &pos)
+        let pos = Matrix::from_vec(f.len(), 3, f.normalized_positions())?;
+        self.encoder.forward(ctx, d, &pos)
     }
 
-    /// The score matrix `S = mdx·mdyᵀ / sqrt(C)` `[M, N]`, row-major.
-    pub fn scores(&self, f0: &Features, f1: &Features) -> candle_core::Result<Vec<f32>> {
-        let (x, y) = (self.embed(f0)?, self.embed(f1)?);
+    /// The couplings `[M+1, N+1]`: scores `S = mdx·mdyᵀ / sqrt(C)` in the inner block
+    /// (the dustbin row and column are left for Sinkhorn to fill).
+    pub fn couplings(&self, ctx: &Ctx, f0: &Features, f1: &Features, profile: &mut Profile) -> Result<Matrix> {
+        let t = Instant::now();
+        let (x, y) = (self.embed(ctx, f0)?, self.embed(ctx, f1)?);
+        profile.encoder = t.elapsed().as_secs_f64();
+        let t = Instant::now();
         let (x, y) = match &self.body {
-            Body::Superglue(layers) => layers.iter().try_fold((x, y), |(x, y), l| l.forward(&x, &y))?,
+            Body::Superglue(layers) => layers.iter().try_fold((x, y), |(x, y), l| l.forward(ctx, &x, &y))?,
             Body::Paraformer(layers) => layers.iter().try_fold((x, y), |(x, y), l| {
-                let o = l.forward(&x, &y)?;
-                Ok::<_, candle_core::Error>((o.x, o.y))
+                let o = l.forward(ctx, &x, &y, false)?;
+                Ok::<_, Error>((o.x, o.y))
             })?,
-            Body::ParaformerU(unet) => unet.forward(&x, &y)?,
+            Body::ParaformerU(unet) => unet.forward(ctx, x, y)?,
         };
-        let (mx, my) = (self.final_proj.forward(&x)?, self.final_proj.forward(&y)?);
-        let s = (mx.matmul(&my.t()?)? / (self.dim as f64).sqrt())?;
-        s.flatten_all()?.to_vec1()
+        profile.layers = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let (mx, my) = (self.final_proj.forward(ctx, x.view())?, self.final_proj.forward(ctx, y.view())?);
+        let (m, n) = (mx.rows, my.rows);
+        let mut z = Matrix::zeros(m + 1, n + 1);
+        let scale = 1.0 / (self.dim as f32).sqrt();
+        ctx.gemm(&mut z.data, n + 1, mx.view(), false, my.view(), true, scale, false, true)?;
+        profile.final_projection = t.elapsed().as_secs_f64();
+        Ok(z)
     }
 }
 
@@ -230,22 +275,41 @@ impl Matcher {
     /// the network is not run and every match is −1 (the log assignment, if asked
     /// for, is then all zeros: every keypoint lies in the dustbin with probability 1).
     pub fn match_pair_with(&self, f0: &Features, f1: &Features, opts: MatchOptions) -> Result<MatchOutput> {
+        Ok(self.run(f0, f1, opts)?.0)
+    }
+
+    /// Like [`Matcher::match_pair_with`], also returning where the time went and the
+    /// multiply-accumulates performed.
+    pub fn profile(&self, f0: &Features, f1: &Features, opts: MatchOptions) -> Result<(MatchOutput, Profile)> {
+        self.run(f0, f1, opts)
+    }
+
+    fn run(&self, f0: &Features, f1: &Features, opts: MatchOptions) -> Result<(MatchOutput, Profile)> {
         f0.validate(self.config.descriptor_dim, 0)?;
         f1.validate(self.config.descriptor_dim, 1)?;
         let (m, n) = (f0.len(), f1.len());
+        let mut profile = Profile::default();
         let (matches, p) = if m == 0 || n == 0 {
-            (Matches::none(m, n), Matrix { rows: m + 1, cols: n + 1, data: vec![0.0; (m + 1) * (n + 1)] })
+            (Matches::none(m, n), Matrix::zeros(m + 1, n + 1))
         } else {
-            let s = self.network.scores(f0, f1)?;
-            let p = log_optimal_transport(&s, m, n, self.network.bin_score, self.config.sinkhorn_iterations);
-            (extract_matches(&p, self.config.match_threshold), p)
+            let ctx = Ctx::default();
+            let mut z = self.network.couplings(&ctx, f0, f1, &mut profile)?;
+            profile.macs = ctx.macs();
+            let t = Instant::now();
+            log_optimal_transport_inplace(&mut z, self.network.bin_score, self.config.sinkhorn_iterations);
+            profile.sinkhorn = t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let matches = extract_matches(&z, self.config.match_threshold);
+            profile.extraction = t.elapsed().as_secs_f64();
+            (matches, z)
         };
-        Ok(MatchOutput {
+        let out = MatchOutput {
             matches0: matches.matches0,
             matches1: matches.matches1,
             matching_scores0: matches.matching_scores0,
             matching_scores1: matches.matching_scores1,
             log_assignment: opts.return_log_assignment.then_some(p),
-        })
+        };
+        Ok((out, profile))
     }
 }

@@ -1,73 +1,140 @@
-//! The one MLP helper (SPEC §2): Linear layers with eval-mode BatchNorm and ReLU in
-//! between, named by `nn.Sequential` indices (`.0`, `.1`, `.3`, `.4`, …).
+//! Linear layers and the one MLP helper (SPEC §2): Linear layers with eval-mode
+//! BatchNorm and ReLU in between, named by `nn.Sequential` indices (`.0`, `.1`, `.3`, …).
+//! Weights are stored transposed (`[in, out]`) for the GEMM, and each BatchNorm is
+//! folded into the Linear before it at load time.
 
-use candle_core::{Module, Result, Tensor, D};
-use candle_nn::{Linear, VarBuilder};
+use candle_core::Result as CResult;
+use candle_nn::VarBuilder;
 
-/// Eval-mode BatchNorm1d over channels, folded into one scale and shift at load time.
+use crate::error::Result;
+use crate::kernels::{relu, Ctx, Matrix, View};
+
+/// Reads a tensor of the given shape as a flat `Vec<f32>`.
+pub(crate) fn read(vb: &VarBuilder, shape: &[usize], name: &str) -> CResult<Vec<f32>> {
+    vb.get(shape, name)?.flatten_all()?.to_vec1()
+}
+
+/// `y = x·Wᵀ + b`, PyTorch layout in the file (`weight` `[out, in]`, `bias` `[out]`).
 #[derive(Debug, Clone)]
-pub struct BatchNorm {
-    scale: Tensor,
-    shift: Tensor,
+pub struct Linear {
+    /// `Wᵀ`, `[in, out]` row-major.
+    wt: Vec<f32>,
+    bias: Vec<f32>,
+    pub in_dim: usize,
+    pub out_dim: usize,
 }
 
-impl BatchNorm {
-    pub const EPS: f64 = 1e-5;
+impl Linear {
+    pub fn new(in_dim: usize, out_dim: usize, vb: VarBuilder) -> CResult<Self> {
+        let w = read(&vb, &[out_dim, in_dim], "weight")?;
+        let bias = read(&vb, &[out_dim], "bias")?;
+        let mut wt = vec![0.0; in_dim * out_dim];
+        for o in 0..out_dim {
+            for i in 0..in_dim {
+                wt[i * out_dim + o] = w[o * in_dim + i];
+            }
+        }
+        Ok(Self { wt, bias, in_dim, out_dim })
+    }
 
-    pub fn new(channels: usize, vb: VarBuilder) -> Result<Self> {
-        let weight = vb.get(channels, "weight")?;
-        let bias = vb.get(channels, "bias")?;
-        let running_mean = vb.get(channels, "running_mean")?;
-        let running_var = vb.get(channels, "running_var")?;
-        // (x − mean)/sqrt(var + eps)·w + b  =  x·scale + shift
-        let scale = weight.broadcast_div(&(running_var + Self::EPS)?.sqrt()?)?;
-        let shift = (bias - running_mean.mul(&scale)?)?;
-        Ok(Self { scale, shift })
+    /// Several Linear layers on the same input, as one with their outputs side by side.
+    pub fn concat(parts: &[&Linear]) -> Linear {
+        let in_dim = parts.first().map_or(0, |p| p.in_dim);
+        let out_dim = parts.iter().map(|p| p.out_dim).sum();
+        let mut wt = Vec::with_capacity(in_dim * out_dim);
+        for i in 0..in_dim {
+            for p in parts {
+                wt.extend_from_slice(&p.wt[i * p.out_dim..(i + 1) * p.out_dim]);
+            }
+        }
+        let bias = parts.iter().flat_map(|p| p.bias.iter().copied()).collect();
+        Linear { wt, bias, in_dim, out_dim }
+    }
+
+    /// Folds a following per-channel affine map `y·scale + shift` into the layer.
+    fn fold_affine(&mut self, scale: &[f32], shift: &[f32]) {
+        for row in self.wt.chunks_exact_mut(self.out_dim) {
+            for (w, s) in row.iter_mut().zip(scale) {
+                *w *= s;
+            }
+        }
+        for ((b, s), t) in self.bias.iter_mut().zip(scale).zip(shift) {
+            *b = *b * s + t;
+        }
+    }
+
+    /// Output columns `c0..c1` only, written into `dst` (row stride `dst_stride`).
+    pub fn forward_cols_into(&self, ctx: &Ctx, x: View, c0: usize, c1: usize, dst: &mut [f32], dst_stride: usize) -> Result<()> {
+        let n = c1 - c0;
+        for r in 0..x.rows {
+            dst[r * dst_stride..r * dst_stride + n].copy_from_slice(&self.bias[c0..c1]);
+        }
+        let w = View { data: &self.wt, rows: self.in_dim, cols: self.out_dim, stride: self.out_dim }.cols(c0, c1);
+        ctx.gemm(dst, dst_stride, x, false, w, false, 1.0, true, true)
+    }
+
+    /// `x·Wᵀ + b` into `dst` with row stride `dst_stride`.
+    pub fn forward_into(&self, ctx: &Ctx, x: View, dst: &mut [f32], dst_stride: usize) -> Result<()> {
+        self.forward_cols_into(ctx, x, 0, self.out_dim, dst, dst_stride)
+    }
+
+    /// Output columns `c0..c1` as a new matrix.
+    pub fn forward_cols(&self, ctx: &Ctx, x: View, c0: usize, c1: usize) -> Result<Matrix> {
+        let mut out = Matrix::zeros(x.rows, c1 - c0);
+        self.forward_cols_into(ctx, x, c0, c1, &mut out.data, c1 - c0)?;
+        Ok(out)
+    }
+
+    pub fn forward(&self, ctx: &Ctx, x: View) -> Result<Matrix> {
+        self.forward_cols(ctx, x, 0, self.out_dim)
     }
 }
 
-impl Module for BatchNorm {
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        x.broadcast_mul(&self.scale)?.broadcast_add(&self.shift)
-    }
-}
-
-/// `MLP([c0, …, cL])` applied to rows `[K, c0] → [K, cL]`.
+/// `MLP([c0, …, cL])` on rows `[K, c0] → [K, cL]`; BatchNorm folded into the Linear layers.
 #[derive(Debug, Clone)]
 pub struct Mlp {
     linears: Vec<Linear>,
-    norms: Vec<BatchNorm>,
 }
 
 impl Mlp {
-    pub fn new(channels: &[usize], vb: VarBuilder) -> Result<Self> {
+    pub const BN_EPS: f32 = 1e-5;
+
+    pub fn new(channels: &[usize], vb: VarBuilder) -> CResult<Self> {
         let n = channels.len().saturating_sub(1);
         let mut linears = Vec::with_capacity(n);
-        let mut norms = Vec::with_capacity(n.saturating_sub(1));
         for i in 0..n {
-            linears.push(candle_nn::linear(channels[i], channels[i + 1], vb.pp(3 * i))?);
+            let mut lin = Linear::new(channels[i], channels[i + 1], vb.pp(3 * i))?;
             if i + 1 < n {
-                norms.push(BatchNorm::new(channels[i + 1], vb.pp(3 * i + 1))?);
+                // Eval-mode BatchNorm: (y − mean)/sqrt(var + eps)·w + b = y·scale + shift.
+                let c = channels[i + 1];
+                let bn = vb.pp(3 * i + 1);
+                let (w, b) = (read(&bn, &[c], "weight")?, read(&bn, &[c], "bias")?);
+                let (mean, var) = (read(&bn, &[c], "running_mean")?, read(&bn, &[c], "running_var")?);
+                let scale: Vec<f32> = w.iter().zip(&var).map(|(w, v)| w / (v + Self::BN_EPS).sqrt()).collect();
+                let shift: Vec<f32> = b.iter().zip(&mean).zip(&scale).map(|((b, m), s)| b - m * s).collect();
+                lin.fold_affine(&scale, &shift);
             }
+            linears.push(lin);
         }
-        Ok(Self { linears, norms })
+        Ok(Self { linears })
+    }
+
+    pub fn forward(&self, ctx: &Ctx, x: View) -> Result<Matrix> {
+        let mut h: Option<Matrix> = None;
+        for (i, lin) in self.linears.iter().enumerate() {
+            let mut out = lin.forward(ctx, h.as_ref().map_or(x, Matrix::view))?;
+            if i + 1 < self.linears.len() {
+                relu(&mut out.data);
+            }
+            h = Some(out);
+        }
+        Ok(h.unwrap_or_else(|| x.to_matrix()))
     }
 }
 
-impl Module for Mlp {
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let mut x = x.clone();
-        for (i, linear) in self.linears.iter().enumerate() {
-            x = linear.forward(&x)?;
-            if let Some(norm) = self.norms.get(i) {
-                x = norm.forward(&x)?.relu()?;
-            }
-        }
-        Ok(x)
+/// `a += b` element-wise (residual connections).
+pub(crate) fn add_assign(a: &mut Matrix, b: &Matrix) {
+    for (x, y) in a.data.iter_mut().zip(&b.data) {
+        *x += y;
     }
-}
-
-/// Concatenates row-aligned feature blocks along channels.
-pub(crate) fn cat_channels(parts: &[&Tensor]) -> Result<Tensor> {
-    Tensor::cat(parts, D::Minus1)
 }

@@ -1,10 +1,13 @@
 //! ParaFormer-U pooling and unpooling (SPEC §7, paper §"ParaFormer-U"): keep the top
 //! half of the keypoints by an importance score, gate them, and scatter them back.
 
-use candle_core::{Module, Result, Tensor, D};
-use candle_nn::{Linear, VarBuilder};
+use candle_core::Result as CResult;
+use candle_nn::VarBuilder;
 
-use crate::config::Pooling;
+use crate::config::{Config, Pooling};
+use crate::error::Result;
+use crate::kernels::{Ctx, Matrix};
+use crate::mlp::{read, Linear};
 
 /// SplitMix64, the generator of random pooling.
 #[derive(Debug, Clone)]
@@ -57,42 +60,48 @@ pub struct PoolIndex {
 #[derive(Debug, Clone)]
 pub struct Pool {
     proj: Linear,
-    score: Option<Tensor>,
+    score: Option<Vec<f32>>,
     kind: Pooling,
     seed: u64,
     index: usize,
+    heads: usize,
 }
 
 impl Pool {
-    pub fn new(c_in: usize, c_out: usize, kind: Pooling, seed: u64, index: usize, vb: VarBuilder) -> Result<Self> {
-        let score = match kind {
-            Pooling::Gpool => Some(vb.get(c_in, "score")?),
+    pub fn new(c_in: usize, c_out: usize, cfg: &Config, index: usize, vb: VarBuilder) -> CResult<Self> {
+        let score = match cfg.pooling {
+            Pooling::Gpool => Some(read(&vb, &[c_in], "score")?),
             _ => None,
         };
-        Ok(Self { proj: candle_nn::linear(c_in, c_out, vb.pp("proj"))?, score, kind, seed, index })
+        Ok(Self { proj: Linear::new(c_in, c_out, vb.pp("proj"))?, score, kind: cfg.pooling, seed: cfg.pooling_seed, index, heads: cfg.num_heads })
+    }
+
+    /// Whether this pool needs the stage's self-attention column sums.
+    pub fn needs_col_sums(&self) -> bool {
+        self.kind == Pooling::Attentional
     }
 
     /// Pools `x` `[K, C_s]` of image `image` (0 = X, 1 = Y) to `[ceil(K/2), C_{s+1}]`.
-    /// `self_probs` `[H, K, K]` are the last self-attention probabilities of the stage
+    /// `col_sums` `[K]` are `Σ_h Σ_i A[h, i, j]` of the stage's last self-attention
     /// (needed by attentional pooling only).
-    pub fn forward(&self, x: &Tensor, self_probs: Option<&Tensor>, image: usize) -> Result<(Tensor, PoolIndex)> {
-        let n = x.dim(0)?;
+    pub fn forward(&self, ctx: &Ctx, x: &Matrix, col_sums: Option<&[f32]>, image: usize) -> Result<(Matrix, PoolIndex)> {
+        let n = x.rows;
         let k = n.div_ceil(2);
         let (rows, gate) = match self.kind {
             Pooling::Attentional => {
-                let probs = self_probs.ok_or_else(|| {
-                    candle_core::Error::Msg("attentional pooling needs a stage with at least one layer".into())
+                let cs = col_sums.ok_or_else(|| {
+                    crate::Error::Config("attentional pooling needs a stage with at least one layer".into())
                 })?;
                 // s_j = mean over heads of the column sums of A.
-                let s: Vec<f32> = probs.sum(1)?.mean(0)?.to_vec1()?;
+                let s: Vec<f32> = cs.iter().map(|v| v / self.heads as f32).collect();
                 let rows = top_k(&s, k);
                 let gate = rows.iter().map(|&r| sigmoid(s[r])).collect::<Vec<_>>();
                 (rows, Some(gate))
             }
             Pooling::Gpool => {
-                let w = self.score.as_ref().ok_or_else(|| candle_core::Error::Msg("gPool score missing".into()))?;
-                let w = (w / w.sqr()?.sum_all()?.sqrt()?.to_scalar::<f32>()? as f64)?;
-                let s: Vec<f32> = x.broadcast_mul(&w)?.sum(D::Minus1)?.to_vec1()?;
+                let w = self.score.as_deref().unwrap_or_default();
+                let norm = w.iter().map(|v| v * v).sum::<f32>().sqrt();
+                let s: Vec<f32> = x.data.chunks_exact(x.cols.max(1)).map(|r| r.iter().zip(w).map(|(a, b)| a * b).sum::<f32>() / norm).collect();
                 let rows = top_k(&s, k);
                 let gate = rows.iter().map(|&r| sigmoid(s[r])).collect::<Vec<_>>();
                 (rows, Some(gate))
@@ -102,10 +111,17 @@ impl Pool {
                 (random_indices(n, k, seed), None)
             }
         };
-        let ids = Tensor::from_vec(rows.iter().map(|&r| r as u32).collect::<Vec<_>>(), rows.len(), x.device())?;
-        let mut out = self.proj.forward(&x.index_select(&ids, 0)?)?;
+        let mut picked = Matrix::zeros(rows.len(), x.cols);
+        for (dst, &r) in picked.data.chunks_exact_mut(x.cols.max(1)).zip(&rows) {
+            dst.copy_from_slice(x.row(r));
+        }
+        let mut out = self.proj.forward(ctx, picked.view())?;
         if let Some(gate) = gate {
-            out = out.broadcast_mul(&Tensor::from_vec(gate, (rows.len(), 1), x.device())?)?;
+            for (row, g) in out.data.chunks_exact_mut(out.cols.max(1)).zip(gate) {
+                for v in row {
+                    *v *= g;
+                }
+            }
         }
         Ok((out, PoolIndex { rows, from_len: n }))
     }
@@ -122,15 +138,20 @@ pub struct Unpool {
 }
 
 impl Unpool {
-    pub fn new(c_in: usize, c_out: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self { proj: candle_nn::linear(c_in, c_out, vb.pp("proj"))? })
+    pub fn new(c_in: usize, c_out: usize, vb: VarBuilder) -> CResult<Self> {
+        Ok(Self { proj: Linear::new(c_in, c_out, vb.pp("proj"))? })
     }
 
-    pub fn forward(&self, x: &Tensor, index: &PoolIndex, skip: &Tensor) -> Result<Tensor> {
-        let u = self.proj.forward(x)?;
-        let ids = Tensor::from_vec(index.rows.iter().map(|&r| r as u32).collect::<Vec<_>>(), index.rows.len(), x.device())?;
-        let zeros = skip.zeros_like()?;
-        zeros.index_add(&ids, &u, 0)? + skip
+    pub fn forward(&self, ctx: &Ctx, x: &Matrix, index: &PoolIndex, skip: &Matrix) -> Result<Matrix> {
+        let u = self.proj.forward(ctx, x.view())?;
+        let mut out = skip.clone();
+        let c = out.cols;
+        for (i, &r) in index.rows.iter().enumerate() {
+            for (o, v) in out.data[r * c..(r + 1) * c].iter_mut().zip(u.row(i)) {
+                *o += v;
+            }
+        }
+        Ok(out)
     }
 }
 

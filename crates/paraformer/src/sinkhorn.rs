@@ -1,49 +1,42 @@
 //! SuperGlue's optimal matching layer (SPEC §8): couplings with a dustbin row and
 //! column, and log-domain Sinkhorn normalisation.
 
-/// A dense row-major `f32` matrix.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Matrix {
-    pub rows: usize,
-    pub cols: usize,
-    pub data: Vec<f32>,
-}
+use rayon::prelude::*;
 
-impl Matrix {
-    pub fn get(&self, r: usize, c: usize) -> f32 {
-        self.data[r * self.cols + c]
-    }
+pub use crate::kernels::Matrix;
+use crate::kernels::logsumexp_plus;
 
-    pub fn row(&self, r: usize) -> &[f32] {
-        &self.data[r * self.cols..(r + 1) * self.cols]
-    }
-}
-
-/// `log Σ exp(a_j + b_j)`, stable for `-inf` entries.
-fn logsumexp_plus(a: &[f32], b: &[f32]) -> f32 {
-    let m = a.iter().zip(b).map(|(x, y)| x + y).fold(f32::NEG_INFINITY, f32::max);
-    if m == f32::NEG_INFINITY {
-        return m;
-    }
-    let s: f32 = a.iter().zip(b).map(|(x, y)| (x + y - m).exp()).sum();
-    m + s.ln()
-}
+/// Rows handed to one rayon task at a time.
+const MIN_ROWS: usize = 16;
 
 /// The log assignment `P` `[M+1, N+1]` for scores `S` `[M, N]` (row-major) and the
 /// dustbin score, after `iters` Sinkhorn iterations.
 pub fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32, iters: usize) -> Matrix {
-    let (r, c) = (m + 1, n + 1);
-    let mut z = vec![bin_score; r * c];
+    let mut z = Matrix::zeros(m + 1, n + 1);
     for i in 0..m {
-        z[i * c..i * c + n].copy_from_slice(&scores[i * n..(i + 1) * n]);
+        z.data[i * (n + 1)..i * (n + 1) + n].copy_from_slice(&scores[i * n..(i + 1) * n]);
     }
-    // A transposed copy keeps the column logsumexp contiguous.
-    let mut zt = vec![0.0f32; r * c];
+    log_optimal_transport_inplace(&mut z, bin_score, iters);
+    z
+}
+
+/// In place: `z` `[M+1, N+1]` holds the scores in its inner block on entry (the last
+/// row and column are overwritten with `bin_score`) and the log assignment on return.
+/// Rows and columns run in parallel; each logsumexp is a vectorised contiguous pass
+/// (columns through a transposed copy).
+pub fn log_optimal_transport_inplace(z: &mut Matrix, bin_score: f32, iters: usize) {
+    let (r, c) = (z.rows, z.cols);
+    let (m, n) = (r - 1, c - 1);
     for i in 0..r {
-        for j in 0..c {
-            zt[j * r + i] = z[i * c + j];
-        }
+        z.data[i * c + n] = bin_score;
     }
+    z.data[m * c..].fill(bin_score);
+    let mut zt = vec![0.0f32; r * c];
+    zt.par_chunks_mut(r).enumerate().for_each(|(j, col)| {
+        for (i, v) in col.iter_mut().enumerate() {
+            *v = z.data[i * c + j];
+        }
+    });
     let (mf, nf) = (m as f32, n as f32);
     let norm = -(mf + nf).ln();
     let mut log_mu = vec![norm; r];
@@ -53,19 +46,18 @@ pub fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32,
     let mut u = vec![0.0f32; r];
     let mut v = vec![0.0f32; c];
     for _ in 0..iters {
-        for i in 0..r {
-            u[i] = log_mu[i] - logsumexp_plus(&z[i * c..(i + 1) * c], &v);
-        }
-        for j in 0..c {
-            v[j] = log_nu[j] - logsumexp_plus(&zt[j * r..(j + 1) * r], &u);
-        }
+        u.par_iter_mut().with_min_len(MIN_ROWS).enumerate().for_each(|(i, ui)| {
+            *ui = log_mu[i] - logsumexp_plus(&z.data[i * c..(i + 1) * c], &v);
+        });
+        v.par_iter_mut().with_min_len(MIN_ROWS).enumerate().for_each(|(j, vj)| {
+            *vj = log_nu[j] - logsumexp_plus(&zt[j * r..(j + 1) * r], &u);
+        });
     }
-    for i in 0..r {
-        for j in 0..c {
-            z[i * c + j] += u[i] + v[j] - norm;
+    z.data.par_chunks_mut(c).zip(u.par_iter()).for_each(|(row, ui)| {
+        for (p, vj) in row.iter_mut().zip(&v) {
+            *p += ui + vj - norm;
         }
-    }
-    Matrix { rows: r, cols: c, data: z }
+    });
 }
 
 /// Mutual-best matches from a log assignment (SPEC §8).

@@ -1,11 +1,13 @@
 //! Position encoders (SPEC §3): SuperGlue's MLP keypoint encoder and ParaFormer's
 //! Wave-PE (paper §"Wave-PE": amplitude from descriptors, phase from positions).
 
-use candle_core::{Module, Result, Tensor};
+use candle_core::Result as CResult;
 use candle_nn::VarBuilder;
 
 use crate::config::PositionalEncoding;
-use crate::mlp::{cat_channels, Mlp};
+use crate::error::Result;
+use crate::kernels::{Ctx, Matrix};
+use crate::mlp::{add_assign, Mlp};
 
 /// MLP-PE, prefix `kenc`: `x⁰ = d + MLP([3, 32, 64, 128, 256, C])(p)`.
 #[derive(Debug, Clone)]
@@ -14,12 +16,14 @@ pub struct KeypointEncoder {
 }
 
 impl KeypointEncoder {
-    pub fn new(c: usize, vb: VarBuilder) -> Result<Self> {
+    pub fn new(c: usize, vb: VarBuilder) -> CResult<Self> {
         Ok(Self { encoder: Mlp::new(&[3, 32, 64, 128, 256, c], vb.pp("encoder"))? })
     }
 
-    pub fn forward(&self, desc: &Tensor, pos: &Tensor) -> Result<Tensor> {
-        desc + self.encoder.forward(pos)?
+    pub fn forward(&self, ctx: &Ctx, desc: Matrix, pos: &Matrix) -> Result<Matrix> {
+        let mut x = desc;
+        add_assign(&mut x, &self.encoder.forward(ctx, pos.view())?);
+        Ok(x)
     }
 }
 
@@ -32,7 +36,7 @@ pub struct WavePe {
 }
 
 impl WavePe {
-    pub fn new(c: usize, vb: VarBuilder) -> Result<Self> {
+    pub fn new(c: usize, vb: VarBuilder) -> CResult<Self> {
         Ok(Self {
             amplitude: Mlp::new(&[c, 4 * c, c], vb.pp("amplitude"))?,
             phase: Mlp::new(&[3, c / 2, c], vb.pp("phase"))?,
@@ -40,11 +44,21 @@ impl WavePe {
         })
     }
 
-    pub fn forward(&self, desc: &Tensor, pos: &Tensor) -> Result<Tensor> {
-        let a = self.amplitude.forward(desc)?;
-        let theta = self.phase.forward(pos)?;
-        let wave = cat_channels(&[&a.mul(&theta.cos()?)?, &a.mul(&theta.sin()?)?])?;
-        desc + self.fuse.forward(&wave)?
+    pub fn forward(&self, ctx: &Ctx, desc: Matrix, pos: &Matrix) -> Result<Matrix> {
+        let a = self.amplitude.forward(ctx, desc.view())?;
+        let theta = self.phase.forward(ctx, pos.view())?;
+        let c = a.cols;
+        let mut wave = Matrix::zeros(a.rows, 2 * c);
+        for ((w, a), t) in wave.data.chunks_exact_mut(2 * c).zip(a.data.chunks_exact(c)).zip(theta.data.chunks_exact(c)) {
+            for j in 0..c {
+                let (s, co) = t[j].sin_cos();
+                w[j] = a[j] * co;
+                w[c + j] = a[j] * s;
+            }
+        }
+        let mut x = desc;
+        add_assign(&mut x, &self.fuse.forward(ctx, wave.view())?);
+        Ok(x)
     }
 }
 
@@ -57,18 +71,18 @@ pub enum PositionEncoder {
 
 impl PositionEncoder {
     /// Builds the encoder under its SPEC prefix (`kenc` or `wave_pe`).
-    pub fn new(kind: PositionalEncoding, c: usize, vb: VarBuilder) -> Result<Self> {
+    pub fn new(kind: PositionalEncoding, c: usize, vb: VarBuilder) -> CResult<Self> {
         Ok(match kind {
             PositionalEncoding::Mlp => Self::Mlp(KeypointEncoder::new(c, vb.pp("kenc"))?),
             PositionalEncoding::Wave => Self::Wave(WavePe::new(c, vb.pp("wave_pe"))?),
         })
     }
 
-    /// `desc` `[K, C]`, normalised keypoints with scores `pos` `[K, 3]` → `[K, C]`.
-    pub fn forward(&self, desc: &Tensor, pos: &Tensor) -> Result<Tensor> {
+    /// Descriptors `[K, C]` and normalised keypoints with scores `[K, 3]` → `[K, C]`.
+    pub fn forward(&self, ctx: &Ctx, desc: Matrix, pos: &Matrix) -> Result<Matrix> {
         match self {
-            Self::Mlp(e) => e.forward(desc, pos),
-            Self::Wave(e) => e.forward(desc, pos),
+            Self::Mlp(e) => e.forward(ctx, desc, pos),
+            Self::Wave(e) => e.forward(ctx, desc, pos),
         }
     }
 }
