@@ -254,7 +254,10 @@ pub fn exp_fast(x: f32) -> f32 {
     const LN2_HI: f32 = 0.693_359_4; // ln 2 split so that n·LN2_HI is exact (Cody–Waite)
     const LN2_LO: f32 = -2.121_944_4e-4;
     let x = x.clamp(-87.0, 88.0);
-    let n = (x * LOG2E + MAGIC) - MAGIC;
+    let shifted = x * LOG2E + MAGIC;
+    let n = shifted - MAGIC;
+    // The integer n sits in the low mantissa bits of `shifted` (no float→int cast).
+    let ni = shifted.to_bits() as i32 - MAGIC.to_bits() as i32;
     let r = (x - n * LN2_HI) - n * LN2_LO;
     // e^r on |r| ≤ ln2/2: Taylor series to degree 7.
     let p = 1.0
@@ -262,23 +265,41 @@ pub fn exp_fast(x: f32) -> f32 {
             + r * (0.5
                 + r * (0.166_666_67
                     + r * (0.041_666_668 + r * (0.008_333_334 + r * (0.001_388_888_9 + r * 0.000_198_412_7))))));
-    p * f32::from_bits(((n as i32 + 127) << 23) as u32)
+    p * f32::from_bits(((ni + 127) << 23) as u32)
 }
+
+/// Elements per stack-buffered chunk of the two-step (map, then reduce) kernels.
+const CHUNK: usize = 256;
 
 #[inline(always)]
 fn max_of(x: &[f32]) -> f32 {
     let mut acc = [f32::NEG_INFINITY; LANES];
-    let mut chunks = x.chunks_exact(LANES);
-    for c in &mut chunks {
+    let tail = x.len() - x.len() % LANES;
+    for i in (0..tail).step_by(LANES) {
+        let c = &x[i..i + LANES];
         for l in 0..LANES {
-            acc[l] = acc[l].max(c[l]);
+            // A select (not f32::max) so that it maps onto vmaxps.
+            acc[l] = if c[l] > acc[l] { c[l] } else { acc[l] };
         }
     }
-    let mut m = chunks.remainder().iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
-    for a in acc {
-        m = m.max(a);
+    let mut m = f32::NEG_INFINITY;
+    for &v in acc.iter().chain(&x[tail..]) {
+        m = if v > m { v } else { m };
     }
     m
+}
+
+#[inline(always)]
+fn sum_of(x: &[f32]) -> f32 {
+    let mut acc = [0.0f32; LANES];
+    let tail = x.len() - x.len() % LANES;
+    for i in (0..tail).step_by(LANES) {
+        let c = &x[i..i + LANES];
+        for l in 0..LANES {
+            acc[l] += c[l];
+        }
+    }
+    acc.iter().sum::<f32>() + x[tail..].iter().sum::<f32>()
 }
 
 multiversion! {
@@ -289,22 +310,10 @@ multiversion! {
         }
         for row in data.chunks_exact_mut(cols) {
             let m = max_of(row);
-            let mut acc = [0.0f32; LANES];
-            let mut chunks = row.chunks_exact_mut(LANES);
-            for c in &mut chunks {
-                for l in 0..LANES {
-                    let e = exp_fast(c[l] - m);
-                    c[l] = e;
-                    acc[l] += e;
-                }
-            }
-            let mut s: f32 = 0.0;
-            for v in chunks.into_remainder() {
+            for v in row.iter_mut() {
                 *v = exp_fast(*v - m);
-                s += *v;
             }
-            s += acc.iter().sum::<f32>();
-            let inv = 1.0 / s;
+            let inv = 1.0 / sum_of(row);
             for v in row.iter_mut() {
                 *v *= inv;
             }
@@ -317,29 +326,26 @@ multiversion! {
     pub fn logsumexp_plus(a: &[f32], b: &[f32]) -> f32 {
         let n = a.len().min(b.len());
         let (a, b) = (&a[..n], &b[..n]);
-        let mut mx = [f32::NEG_INFINITY; LANES];
-        for (ca, cb) in a.chunks_exact(LANES).zip(b.chunks_exact(LANES)) {
-            for l in 0..LANES {
-                mx[l] = mx[l].max(ca[l] + cb[l]);
+        let mut buf = [0.0f32; CHUNK];
+        let mut m = f32::NEG_INFINITY;
+        for (ca, cb) in a.chunks(CHUNK).zip(b.chunks(CHUNK)) {
+            let t = &mut buf[..ca.len()];
+            for ((t, x), y) in t.iter_mut().zip(ca).zip(cb) {
+                *t = x + y;
             }
-        }
-        let tail = n - n % LANES;
-        let mut m = mx.iter().fold(f32::NEG_INFINITY, |x, &y| x.max(y));
-        for j in tail..n {
-            m = m.max(a[j] + b[j]);
+            let cm = max_of(t);
+            m = if cm > m { cm } else { m };
         }
         if m == f32::NEG_INFINITY {
             return m;
         }
-        let mut acc = [0.0f32; LANES];
-        for (ca, cb) in a.chunks_exact(LANES).zip(b.chunks_exact(LANES)) {
-            for l in 0..LANES {
-                acc[l] += exp_fast(ca[l] + cb[l] - m);
+        let mut s = 0.0f32;
+        for (ca, cb) in a.chunks(CHUNK).zip(b.chunks(CHUNK)) {
+            let t = &mut buf[..ca.len()];
+            for ((t, x), y) in t.iter_mut().zip(ca).zip(cb) {
+                *t = exp_fast(x + y - m);
             }
-        }
-        let mut s: f32 = acc.iter().sum();
-        for j in tail..n {
-            s += exp_fast(a[j] + b[j] - m);
+            s += sum_of(t);
         }
         m + s.ln()
     }
@@ -353,6 +359,40 @@ multiversion! {
             let e = exp_fast(s[j] - m[j]);
             out[j] = e;
             sums[j] += e;
+        }
+    }
+}
+
+multiversion! {
+    /// `Σ_j a_j · b_j`.
+    pub fn dot(a: &[f32], b: &[f32]) -> f32 {
+        let n = a.len().min(b.len());
+        let tail = n - n % LANES;
+        let mut acc = [0.0f32; LANES];
+        for i in (0..tail).step_by(LANES) {
+            let (ca, cb) = (&a[i..i + LANES], &b[i..i + LANES]);
+            for l in 0..LANES {
+                acc[l] += ca[l] * cb[l];
+            }
+        }
+        acc.iter().sum::<f32>() + a[tail..n].iter().zip(&b[tail..n]).map(|(x, y)| x * y).sum::<f32>()
+    }
+}
+
+multiversion! {
+    /// `y += alpha · x`.
+    pub fn axpy(alpha: f32, x: &[f32], y: &mut [f32]) {
+        for (y, x) in y.iter_mut().zip(x) {
+            *y += alpha * x;
+        }
+    }
+}
+
+multiversion! {
+    /// `k_j = exp(z_j + f + g_j)` for one row.
+    pub fn exp_row(z: &[f32], f: f32, g: &[f32], k: &mut [f32]) {
+        for ((k, z), g) in k.iter_mut().zip(z).zip(g) {
+            *k = exp_fast(z + f + g);
         }
     }
 }

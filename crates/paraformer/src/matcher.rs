@@ -262,6 +262,14 @@ impl Matcher {
         Ok(Self { config, network })
     }
 
+    /// A matcher with deterministic random weights (for benchmarks and tests; it
+    /// matches nothing meaningful).
+    pub fn random(config: Config, seed: u64) -> Result<Self> {
+        config.validate()?;
+        let network = crate::weights::build_random(seed, |vb| Network::new(&config, vb))?;
+        Ok(Self { config, network })
+    }
+
     pub fn config(&self) -> &Config {
         &self.config
     }

@@ -4,7 +4,7 @@
 use rayon::prelude::*;
 
 pub use crate::kernels::Matrix;
-use crate::kernels::logsumexp_plus;
+use crate::kernels::{axpy, dot, exp_row, logsumexp_plus};
 
 /// Rows handed to one rayon task at a time.
 const MIN_ROWS: usize = 16;
@@ -20,10 +20,19 @@ pub fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32,
     z
 }
 
+/// Largest |log| a scaling may reach before it is absorbed into the kernel.
+const ABSORB: f32 = 30.0;
+
 /// In place: `z` `[M+1, N+1]` holds the scores in its inner block on entry (the last
 /// row and column are overwritten with `bin_score`) and the log assignment on return.
-/// Rows and columns run in parallel; each logsumexp is a vectorised contiguous pass
-/// (columns through a transposed copy).
+///
+/// The iterates are SPEC §8's log-domain ones, computed in the scaling domain with
+/// log-domain stabilisation: with potentials `f, g` absorbed into the kernel
+/// `K = exp(Z + f ⊕ g)` and scalings `a, b`, SPEC's `u = f + log a`, `v = g + log b`.
+/// One sweep over K per iteration updates `a` row by row (`a_i = μ_i / K_i·b`) and
+/// accumulates `Kᵀa` for `b` in the same pass; `K` is rebuilt (one exp pass) only
+/// when a scaling leaves `[e^−30, e^30]`. The result is assembled in the log domain,
+/// so entries far below the maximum stay exact.
 pub fn log_optimal_transport_inplace(z: &mut Matrix, bin_score: f32, iters: usize) {
     let (r, c) = (z.rows, z.cols);
     let (m, n) = (r - 1, c - 1);
@@ -31,33 +40,111 @@ pub fn log_optimal_transport_inplace(z: &mut Matrix, bin_score: f32, iters: usiz
         z.data[i * c + n] = bin_score;
     }
     z.data[m * c..].fill(bin_score);
-    let mut zt = vec![0.0f32; r * c];
-    zt.par_chunks_mut(r).enumerate().for_each(|(j, col)| {
-        for (i, v) in col.iter_mut().enumerate() {
-            *v = z.data[i * c + j];
+    let (mf, nf) = (m as f32, n as f32);
+    let norm = -(mf + nf).ln();
+    if iters == 0 {
+        // SPEC: u = v = 0 before the first iteration.
+        z.data.par_iter_mut().for_each(|p| *p -= norm);
+        return;
+    }
+    let mut log_mu = vec![norm; r];
+    log_mu[m] = nf.ln() + norm;
+    let mut log_nu = vec![norm; c];
+    log_nu[n] = mf.ln() + norm;
+    let mu: Vec<f32> = log_mu.iter().map(|v| v.exp()).collect();
+    let nu: Vec<f32> = log_nu.iter().map(|v| v.exp()).collect();
+
+    // Start with each row's maximum absorbed, so that K ≤ 1.
+    let mut f: Vec<f32> = z.data.par_chunks(c).map(|row| -row.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b))).collect();
+    let mut g = vec![0.0f32; c];
+    let mut k = vec![0.0f32; r * c];
+    let rebuild = |k: &mut [f32], f: &[f32], g: &[f32]| {
+        k.par_chunks_mut(c).zip(z.data.par_chunks(c)).zip(f.par_iter()).for_each(|((kr, zr), &fi)| exp_row(zr, fi, g, kr));
+    };
+    rebuild(&mut k, &f, &g);
+    let mut a = vec![1.0f32; r];
+    let mut b = vec![1.0f32; c];
+    let rows_per_task = r.div_ceil(rayon::current_num_threads().max(1) * 4).max(MIN_ROWS);
+    for it in 0..iters {
+        // a_i = μ_i / (K b)_i, and Kᵀa accumulated in the same sweep.
+        let kta = a
+            .par_chunks_mut(rows_per_task)
+            .zip(k.par_chunks(rows_per_task * c))
+            .zip(mu.par_chunks(rows_per_task))
+            .fold(
+                || vec![0.0f32; c],
+                |mut acc, ((ac, kc), muc)| {
+                    for ((ai, kr), mui) in ac.iter_mut().zip(kc.chunks_exact(c)).zip(muc) {
+                        *ai = mui / dot(kr, &b);
+                        axpy(*ai, kr, &mut acc);
+                    }
+                    acc
+                },
+            )
+            .reduce(|| vec![0.0f32; c], |mut x, y| {
+                axpy(1.0, &y, &mut x);
+                x
+            });
+        for ((bj, nuj), s) in b.iter_mut().zip(&nu).zip(&kta) {
+            *bj = nuj / s;
+        }
+        let out_of_range = |s: &[f32]| s.iter().any(|v| !(v.ln().abs() <= ABSORB));
+        if it + 1 < iters && (out_of_range(&a) || out_of_range(&b)) {
+            for (fi, ai) in f.iter_mut().zip(&mut a) {
+                *fi += ai.ln();
+                *ai = 1.0;
+            }
+            for (gj, bj) in g.iter_mut().zip(&mut b) {
+                *gj += bj.ln();
+                *bj = 1.0;
+            }
+            rebuild(&mut k, &f, &g);
+        }
+    }
+    let u: Vec<f32> = f.iter().zip(&a).map(|(fi, ai)| fi + ai.ln()).collect();
+    let v: Vec<f32> = g.iter().zip(&b).map(|(gj, bj)| gj + bj.ln()).collect();
+    z.data.par_chunks_mut(c).zip(u.par_iter()).for_each(|(row, ui)| {
+        for (p, vj) in row.iter_mut().zip(&v) {
+            *p += ui + vj - norm;
         }
     });
+}
+
+/// SPEC §8 verbatim (log domain, one logsumexp per row and column and iteration):
+/// the reference that the fast version is tested against.
+pub fn log_optimal_transport_reference(z: &mut Matrix, bin_score: f32, iters: usize) {
+    let (r, c) = (z.rows, z.cols);
+    let (m, n) = (r - 1, c - 1);
+    for i in 0..r {
+        z.data[i * c + n] = bin_score;
+    }
+    z.data[m * c..].fill(bin_score);
+    let mut zt = vec![0.0f32; r * c];
+    for j in 0..c {
+        for i in 0..r {
+            zt[j * r + i] = z.data[i * c + j];
+        }
+    }
     let (mf, nf) = (m as f32, n as f32);
     let norm = -(mf + nf).ln();
     let mut log_mu = vec![norm; r];
     log_mu[m] = nf.ln() + norm;
     let mut log_nu = vec![norm; c];
     log_nu[n] = mf.ln() + norm;
-    let mut u = vec![0.0f32; r];
-    let mut v = vec![0.0f32; c];
+    let (mut u, mut v) = (vec![0.0f32; r], vec![0.0f32; c]);
     for _ in 0..iters {
-        u.par_iter_mut().with_min_len(MIN_ROWS).enumerate().for_each(|(i, ui)| {
-            *ui = log_mu[i] - logsumexp_plus(&z.data[i * c..(i + 1) * c], &v);
-        });
-        v.par_iter_mut().with_min_len(MIN_ROWS).enumerate().for_each(|(j, vj)| {
-            *vj = log_nu[j] - logsumexp_plus(&zt[j * r..(j + 1) * r], &u);
-        });
-    }
-    z.data.par_chunks_mut(c).zip(u.par_iter()).for_each(|(row, ui)| {
-        for (p, vj) in row.iter_mut().zip(&v) {
-            *p += ui + vj - norm;
+        for i in 0..r {
+            u[i] = log_mu[i] - logsumexp_plus(&z.data[i * c..(i + 1) * c], &v);
         }
-    });
+        for j in 0..c {
+            v[j] = log_nu[j] - logsumexp_plus(&zt[j * r..(j + 1) * r], &u);
+        }
+    }
+    for i in 0..r {
+        for j in 0..c {
+            z.data[i * c + j] += u[i] + v[j] - norm;
+        }
+    }
 }
 
 /// Mutual-best matches from a log assignment (SPEC §8).
@@ -148,6 +235,26 @@ mod tests {
             assert!((col(j) - 1.0 / total).abs() < 1e-4, "col {j}: {}", col(j));
         }
         assert!((col(n) - m as f32 / total).abs() < 1e-4);
+    }
+
+    #[test]
+    fn fast_sinkhorn_equals_the_log_domain_reference() {
+        // Ordinary, wide (±150, forcing absorptions) and lopsided score ranges.
+        for (m, n, spread, bin) in [(40, 57, 6.0, 1.0), (33, 20, 300.0, -40.0), (64, 9, 60.0, 90.0), (1, 5, 10.0, 0.0)] {
+            let s: Vec<f32> = scores(m, n).iter().map(|v| v * spread / 6.0).collect();
+            for iters in [0, 1, 7, 100] {
+                let mut fast = Matrix::zeros(m + 1, n + 1);
+                for i in 0..m {
+                    fast.data[i * (n + 1)..i * (n + 1) + n].copy_from_slice(&s[i * n..(i + 1) * n]);
+                }
+                let mut slow = fast.clone();
+                log_optimal_transport_inplace(&mut fast, bin, iters);
+                log_optimal_transport_reference(&mut slow, bin, iters);
+                let d = fast.data.iter().zip(&slow.data).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+                let scale = slow.data.iter().fold(1.0f32, |a, b| a.max(b.abs()));
+                assert!(d <= 1e-4 * scale.max(1.0) / 10.0 + 2e-5, "M={m} N={n} spread={spread} iters={iters}: {d}");
+            }
+        }
     }
 
     #[test]

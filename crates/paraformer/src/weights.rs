@@ -191,3 +191,49 @@ impl candle_nn::var_builder::SimpleBackend for SharedBackend<'_> {
         self.0.weights.tensors.contains_key(name)
     }
 }
+
+/// A `VarBuilder` backend that invents deterministic random weights of the requested
+/// shapes: Linear weights `U(±sqrt(3/fan_in))`, small biases, positive running
+/// variances, norm weights near 1. For benchmarks and tests at any width.
+struct RandomBackend {
+    seed: u64,
+}
+
+impl candle_nn::var_builder::SimpleBackend for RandomBackend {
+    fn get(&self, s: Shape, name: &str, _h: candle_nn::Init, _dtype: DType, _dev: &Device) -> candle_core::Result<Tensor> {
+        // One stream per tensor name, so values do not depend on the build order.
+        let mut state = name.bytes().fold(self.seed ^ 0xCBF2_9CE4_8422_2325, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01B3));
+        let mut uniform = || {
+            let mut rng = crate::pooling::SplitMix64::new(state);
+            state = rng.next_u64();
+            (state >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
+        };
+        let dims = s.dims().to_vec();
+        let n = s.elem_count();
+        let values: Vec<f32> = if name.ends_with("running_var") {
+            (0..n).map(|_| 1.0 + 0.5 * uniform()).collect()
+        } else if dims.len() == 2 {
+            let bound = (3.0 / dims[1] as f32).sqrt();
+            (0..n).map(|_| bound * uniform()).collect()
+        } else if name.ends_with("weight") {
+            (0..n).map(|_| 1.0 + 0.1 * uniform()).collect()
+        } else {
+            (0..n).map(|_| 0.1 * uniform()).collect()
+        };
+        Tensor::from_vec(values, s, &Device::Cpu)
+    }
+
+    fn get_unchecked(&self, name: &str, _dtype: DType, _dev: &Device) -> candle_core::Result<Tensor> {
+        Err(candle_core::Error::Msg(format!("random weights need a shape for `{name}`")))
+    }
+
+    fn contains_tensor(&self, _name: &str) -> bool {
+        true
+    }
+}
+
+/// Builds a model from deterministic random weights.
+pub(crate) fn build_random<T>(seed: u64, build: impl FnOnce(VarBuilder) -> candle_core::Result<T>) -> Result<T> {
+    let vb = VarBuilder::from_backend(Box::new(RandomBackend { seed }), DType::F32, Device::Cpu);
+    Ok(build(vb)?)
+}
