@@ -296,3 +296,12 @@ def test_type_stubs_match_the_module():
                        capture_output=True, text=True, cwd=Path(__file__).parent)
     assert r.returncode == 0, r.stdout + r.stderr
     assert (Path(paraformer.__file__).parent / "py.typed").exists()
+
+
+def test_profile_reports_parts_and_the_counted_macs(golden_weights, golden_case):
+    m, c = paraformer.Matcher.from_file(golden_weights), golden_case
+    p = m.profile(*args(c), **kw(c))
+    assert set(p) == {"encoder", "layers", "final_projection", "sinkhorn", "extraction", "total", "macs"}
+    assert all(p[k] >= 0 for k in p)
+    assert p["total"] == pytest.approx(sum(p[k] for k in ("encoder", "layers", "final_projection", "sinkhorn", "extraction")))
+    assert p["macs"] == paraformer.flops(m, len(c["keypoints0"]), len(c["keypoints1"]))

@@ -174,6 +174,21 @@ class Matcher:
         f1 = _image(1, kpts1, desc1, scores1, size1, self._dim)
         return _unpack(self._inner.match_pair(f0, f1, bool(return_log_assignment)))
 
+    def profile(self, kpts0: ArrayLike, desc0: ArrayLike, kpts1: ArrayLike, desc1: ArrayLike, *,
+                size0: Sequence[float], size1: Sequence[float],
+                scores0: ArrayLike | None = None, scores1: ArrayLike | None = None) -> dict[str, float]:
+        """Runs ``match`` once and reports where the time went.
+
+        Args:
+            kpts0, desc0, kpts1, desc1, size0, size1, scores0, scores1: as for ``match``.
+        Returns:
+            Seconds per part (``encoder``, ``layers``, ``final_projection``, ``sinkhorn``,
+            ``extraction``, ``total``) and ``macs``, the multiply-accumulates performed.
+        """
+        f0 = _image(0, kpts0, desc0, scores0, size0, self._dim)
+        f1 = _image(1, kpts1, desc1, scores1, size1, self._dim)
+        return dict(self._inner.profile(f0, f1))
+
     def match_dicts(self, feats0: Mapping[str, Any], feats1: Mapping[str, Any], *,
                     return_log_assignment: bool = False) -> Output:
         """Matches LightGlue-style feature dicts.

@@ -174,6 +174,33 @@ impl PyMatcher {
         output_dict(py, &out)
     }
 
+    /// Matches one pair and reports where the time went.
+    ///
+    /// Args:
+    ///     features0: image 0, as for `match_pair`.
+    ///     features1: image 1, as for `match_pair`.
+    /// Returns:
+    ///     A dict of seconds per part (`encoder`, `layers`, `final_projection`, `sinkhorn`,
+    ///     `extraction`, `total`) and `macs`, the multiply-accumulates performed.
+    #[pyo3(signature = (features0, features1))]
+    fn profile<'py>(&self, py: Python<'py>, features0: RawFeatures, features1: RawFeatures) -> PyResult<Bound<'py, PyDict>> {
+        let (f0, f1) = (features0.to_features(0)?, features1.to_features(1)?);
+        let (_, p) = py.detach(|| self.inner.profile(&f0, &f1, MatchOptions::default())).map_err(to_py_err)?;
+        let d = PyDict::new(py);
+        for (k, v) in [
+            ("encoder", p.encoder),
+            ("layers", p.layers),
+            ("final_projection", p.final_projection),
+            ("sinkhorn", p.sinkhorn),
+            ("extraction", p.extraction),
+            ("total", p.total()),
+        ] {
+            d.set_item(k, v)?;
+        }
+        d.set_item("macs", p.macs)?;
+        Ok(d)
+    }
+
     /// Matches many pairs in parallel on `num_threads` threads (default: all cores).
     ///
     /// Args:

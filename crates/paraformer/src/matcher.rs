@@ -266,7 +266,7 @@ impl Matcher {
     /// matches nothing meaningful).
     pub fn random(config: Config, seed: u64) -> Result<Self> {
         config.validate()?;
-        let network = crate::weights::build_random(seed, |vb| Network::new(&config, vb))?;
+        let network = Network::new(&config, crate::weights::random_var_builder(seed))?;
         Ok(Self { config, network })
     }
 

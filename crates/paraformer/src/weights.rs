@@ -232,8 +232,8 @@ impl candle_nn::var_builder::SimpleBackend for RandomBackend {
     }
 }
 
-/// Builds a model from deterministic random weights.
-pub(crate) fn build_random<T>(seed: u64, build: impl FnOnce(VarBuilder) -> candle_core::Result<T>) -> Result<T> {
-    let vb = VarBuilder::from_backend(Box::new(RandomBackend { seed }), DType::F32, Device::Cpu);
-    Ok(build(vb)?)
+/// A `VarBuilder` that hands out deterministic random weights of any requested shape,
+/// for building single layers or whole models in benchmarks and tests.
+pub fn random_var_builder(seed: u64) -> VarBuilder<'static> {
+    VarBuilder::from_backend(Box::new(RandomBackend { seed }), DType::F32, Device::Cpu)
 }

@@ -1,0 +1,73 @@
+//! Criterion benchmarks at the paper's full widths (C = 256, random weights made at
+//! bench time): end-to-end latency of the three models at 512/1024/2048 keypoints, and
+//! the parts separately (one parallel layer, one serial layer, Sinkhorn, encoder).
+//!
+//!     cargo bench -p paraformer-benches
+//!     cargo bench -p paraformer-benches -- end_to_end/paraformer/2048   # one case
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use paraformer::kernels::{Ctx, Matrix};
+use paraformer::layers::{ParallelLayer, SerialLayer};
+use paraformer::sinkhorn::log_optimal_transport_inplace;
+use paraformer::wave_pe::WavePe;
+use paraformer::weights::random_var_builder;
+use paraformer::{Config, LayerKind, MatchOptions, Matcher, ParallelSwitches};
+use paraformer_benches::random_features;
+
+const KEYPOINTS: [usize; 3] = [512, 1024, 2048];
+
+fn random_matrix(rows: usize, cols: usize, seed: u64) -> Matrix {
+    let f = random_features(rows, cols, seed);
+    Matrix { rows, cols, data: f.descriptors }
+}
+
+fn end_to_end(c: &mut Criterion) {
+    let mut g = c.benchmark_group("end_to_end");
+    g.sample_size(10);
+    for name in ["superglue", "paraformer", "paraformer_u"] {
+        let cfg = Config::preset(name).expect("preset");
+        let matcher = Matcher::random(cfg.clone(), 0).expect("random weights");
+        for k in KEYPOINTS {
+            let (f0, f1) = (random_features(k, 256, 1), random_features(k, 256, 2));
+            g.bench_with_input(BenchmarkId::new(name, k), &k, |b, _| {
+                b.iter(|| matcher.match_pair_with(&f0, &f1, MatchOptions::default()).expect("runs"))
+            });
+        }
+    }
+    g.finish();
+}
+
+fn parts(c: &mut Criterion) {
+    let mut g = c.benchmark_group("parts");
+    g.sample_size(10);
+    let vb = random_var_builder(3);
+    let parallel = ParallelLayer::new(256, 4, ParallelSwitches::default(), vb.pp("p")).expect("layer");
+    let serial = SerialLayer::new(256, 4, LayerKind::Cross, vb.pp("s")).expect("layer");
+    let wave = WavePe::new(256, vb.pp("w")).expect("encoder");
+    for k in KEYPOINTS {
+        let (x, y) = (random_matrix(k, 256, 4), random_matrix(k, 256, 5));
+        let ctx = Ctx::default();
+        g.bench_with_input(BenchmarkId::new("parallel_layer", k), &k, |b, _| {
+            b.iter(|| parallel.forward(&ctx, &x, &y, false).expect("runs"))
+        });
+        g.bench_with_input(BenchmarkId::new("serial_cross_layer", k), &k, |b, _| {
+            b.iter(|| serial.forward(&ctx, &x, &y).expect("runs"))
+        });
+        let pos = Matrix { rows: k, cols: 3, data: random_features(k, 3, 6).descriptors };
+        g.bench_with_input(BenchmarkId::new("wave_pe_encoder", k), &k, |b, _| {
+            b.iter(|| wave.forward(&ctx, x.clone(), &pos).expect("runs"))
+        });
+        let scores = random_matrix(k + 1, k + 1, 7);
+        g.bench_with_input(BenchmarkId::new("sinkhorn_100", k), &k, |b, _| {
+            b.iter(|| {
+                let mut z = scores.clone();
+                log_optimal_transport_inplace(&mut z, 1.0, 100);
+                z
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, end_to_end, parts);
+criterion_main!(benches);
