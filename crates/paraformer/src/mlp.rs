@@ -80,9 +80,15 @@ impl Linear {
 
     /// Output columns `c0..c1` as a new matrix.
     pub fn forward_cols(&self, ctx: &Ctx, x: View, c0: usize, c1: usize) -> Result<Matrix> {
-        let mut out = Matrix::zeros(x.rows, c1 - c0);
-        self.forward_cols_into(ctx, x, c0, c1, &mut out.data, c1 - c0)?;
-        Ok(out)
+        let n = c1 - c0;
+        // Start from the bias rows (one write, no zero-fill), then accumulate x·W.
+        let mut data = Vec::with_capacity(x.rows * n);
+        for _ in 0..x.rows {
+            data.extend_from_slice(&self.bias[c0..c1]);
+        }
+        let w = View { data: &self.wt, rows: self.in_dim, cols: self.out_dim, stride: self.out_dim }.cols(c0, c1);
+        ctx.gemm(&mut data, n, x, false, w, false, 1.0, true, true)?;
+        Matrix::from_vec(x.rows, n, data)
     }
 
     pub fn forward(&self, ctx: &Ctx, x: View) -> Result<Matrix> {
