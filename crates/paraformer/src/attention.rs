@@ -62,9 +62,8 @@ pub fn attention(ctx: &Ctx, q: View, k: View, v: View, heads: usize, col_sums: b
                         }
                     }
                     let probs = View { data: &s, rows, cols: n, stride: n };
-                    let dst = dst;
                     // SAFETY: task (h, b) alone writes rows r0..r1, columns h·d..(h+1)·d.
-                    unsafe { ctx.gemm_ptr(dst.0.add(r0 * c + h * d), c, probs, false, v.cols(h * d, (h + 1) * d), false, 1.0, false, false) }
+                    unsafe { ctx.gemm_ptr(dst.at(r0 * c + h * d), c, probs, false, v.cols(h * d, (h + 1) * d), false, 1.0, false, false) }
                 };
                 record(&err, run());
                 (s, cs)
@@ -126,16 +125,13 @@ pub fn cross_attention_shared(ctx: &Ctx, qx: View, ky: View, vx: View, vy: View,
                 ctx.gemm(&mut acc_y, d, eb, true, vxh.rows(r0, r1), false, 1.0, true, false)?;
                 softmax_rows(&mut s[..rows * n], n);
                 let probs = View { data: &s, rows, cols: n, stride: n };
-                let dst = dx;
                 // SAFETY: head h alone writes columns h·d..(h+1)·d of out_x.
-                unsafe { ctx.gemm_ptr(dst.0.add(r0 * c + h * d), c, probs, false, vyh, false, 1.0, false, false)? };
+                unsafe { ctx.gemm_ptr(dx.at(r0 * c + h * d), c, probs, false, vyh, false, 1.0, false, false)? };
             }
-            let dst = dy;
-            for j in 0..n {
-                let inv = 1.0 / col_sum[j];
-                for t in 0..d {
+            for (j, (acc, s)) in acc_y.chunks_exact(d).zip(&col_sum).enumerate() {
+                for (t, a) in acc.iter().enumerate() {
                     // SAFETY: head h alone writes columns h·d..(h+1)·d of out_y; j·c + h·d + t < n·c.
-                    unsafe { *dst.0.add(j * c + h * d + t) = acc_y[j * d + t] * inv };
+                    unsafe { *dy.at(j * c + h * d + t) = a / s };
                 }
             }
             Ok(())

@@ -89,6 +89,17 @@ pub(crate) struct SharedMut(pub *mut f32);
 unsafe impl Send for SharedMut {}
 unsafe impl Sync for SharedMut {}
 
+impl SharedMut {
+    /// The pointer `offset` values in (a method, so closures capture the whole wrapper).
+    ///
+    /// # Safety
+    /// `offset` must lie inside the buffer.
+    pub(crate) unsafe fn at(self, offset: usize) -> *mut f32 {
+        // SAFETY: the caller keeps `offset` inside the buffer.
+        unsafe { self.0.add(offset) }
+    }
+}
+
 /// Per-call engine state: the thread count and a count of the multiply-accumulates
 /// of every matrix product performed (checked against `flops`).
 #[derive(Debug)]

@@ -20,6 +20,24 @@ pub fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32,
     z
 }
 
+/// The couplings' dustbins and SPEC §8's marginals: fills the last row and column of
+/// `z` with `bin_score`; returns `(norm, log_mu, log_nu)`.
+fn couplings_and_marginals(z: &mut Matrix, bin_score: f32) -> (f32, Vec<f32>, Vec<f32>) {
+    let (r, c) = (z.rows, z.cols);
+    let (m, n) = (r - 1, c - 1);
+    for i in 0..r {
+        z.data[i * c + n] = bin_score;
+    }
+    z.data[m * c..].fill(bin_score);
+    let (mf, nf) = (m as f32, n as f32);
+    let norm = -(mf + nf).ln();
+    let mut log_mu = vec![norm; r];
+    log_mu[m] = nf.ln() + norm;
+    let mut log_nu = vec![norm; c];
+    log_nu[n] = mf.ln() + norm;
+    (norm, log_mu, log_nu)
+}
+
 /// Largest |log| a scaling may reach before it is absorbed into the kernel.
 const ABSORB: f32 = 30.0;
 
@@ -35,22 +53,12 @@ const ABSORB: f32 = 30.0;
 /// so entries far below the maximum stay exact.
 pub fn log_optimal_transport_inplace(z: &mut Matrix, bin_score: f32, iters: usize) {
     let (r, c) = (z.rows, z.cols);
-    let (m, n) = (r - 1, c - 1);
-    for i in 0..r {
-        z.data[i * c + n] = bin_score;
-    }
-    z.data[m * c..].fill(bin_score);
-    let (mf, nf) = (m as f32, n as f32);
-    let norm = -(mf + nf).ln();
+    let (norm, log_mu, log_nu) = couplings_and_marginals(z, bin_score);
     if iters == 0 {
         // SPEC: u = v = 0 before the first iteration.
         z.data.par_iter_mut().for_each(|p| *p -= norm);
         return;
     }
-    let mut log_mu = vec![norm; r];
-    log_mu[m] = nf.ln() + norm;
-    let mut log_nu = vec![norm; c];
-    log_nu[n] = mf.ln() + norm;
     let mu: Vec<f32> = log_mu.iter().map(|v| v.exp()).collect();
     let nu: Vec<f32> = log_nu.iter().map(|v| v.exp()).collect();
 
@@ -88,7 +96,7 @@ pub fn log_optimal_transport_inplace(z: &mut Matrix, bin_score: f32, iters: usiz
         for ((bj, nuj), s) in b.iter_mut().zip(&nu).zip(&kta) {
             *bj = nuj / s;
         }
-        let out_of_range = |s: &[f32]| s.iter().any(|v| !(v.ln().abs() <= ABSORB));
+        let out_of_range = |s: &[f32]| s.iter().any(|v| v.ln().abs().is_nan() || v.ln().abs() > ABSORB);
         if it + 1 < iters && (out_of_range(&a) || out_of_range(&b)) {
             for (fi, ai) in f.iter_mut().zip(&mut a) {
                 *fi += ai.ln();
@@ -114,23 +122,13 @@ pub fn log_optimal_transport_inplace(z: &mut Matrix, bin_score: f32, iters: usiz
 /// the reference that the fast version is tested against.
 pub fn log_optimal_transport_reference(z: &mut Matrix, bin_score: f32, iters: usize) {
     let (r, c) = (z.rows, z.cols);
-    let (m, n) = (r - 1, c - 1);
-    for i in 0..r {
-        z.data[i * c + n] = bin_score;
-    }
-    z.data[m * c..].fill(bin_score);
+    let (norm, log_mu, log_nu) = couplings_and_marginals(z, bin_score);
     let mut zt = vec![0.0f32; r * c];
     for j in 0..c {
         for i in 0..r {
             zt[j * r + i] = z.data[i * c + j];
         }
     }
-    let (mf, nf) = (m as f32, n as f32);
-    let norm = -(mf + nf).ln();
-    let mut log_mu = vec![norm; r];
-    log_mu[m] = nf.ln() + norm;
-    let mut log_nu = vec![norm; c];
-    log_nu[n] = mf.ln() + norm;
     let (mut u, mut v) = (vec![0.0f32; r], vec![0.0f32; c]);
     for _ in 0..iters {
         for i in 0..r {
@@ -140,9 +138,9 @@ pub fn log_optimal_transport_reference(z: &mut Matrix, bin_score: f32, iters: us
             v[j] = log_nu[j] - logsumexp_plus(&zt[j * r..(j + 1) * r], &u);
         }
     }
-    for i in 0..r {
-        for j in 0..c {
-            z.data[i * c + j] += u[i] + v[j] - norm;
+    for (row, ui) in z.data.chunks_exact_mut(c).zip(&u) {
+        for (p, vj) in row.iter_mut().zip(&v) {
+            *p += ui + vj - norm;
         }
     }
 }
@@ -198,8 +196,7 @@ pub fn extract_matches(p: &Matrix, threshold: f32) -> Matches {
             }
         }
     }
-    for j in 0..n {
-        let i = idx1[j];
+    for (j, &i) in idx1.iter().enumerate() {
         if idx0[i] == j {
             out.matching_scores1[j] = out.matching_scores0[i];
             if valid0[i] {
