@@ -305,3 +305,20 @@ def test_profile_reports_parts_and_the_counted_macs(golden_weights, golden_case)
     assert all(p[k] >= 0 for k in p)
     assert p["total"] == pytest.approx(sum(p[k] for k in ("encoder", "layers", "final_projection", "sinkhorn", "extraction")))
     assert p["macs"] == paraformer.flops(m, len(c["keypoints0"]), len(c["keypoints1"]))
+
+
+def test_gil_is_released_while_matching(golden_weights):
+    # While a thread matches, the main thread keeps running Python code; with the GIL
+    # held for the whole computation it could not count at all until the thread ended.
+    m = paraformer.Matcher.from_file(golden_weights)
+    rng = np.random.default_rng(0)
+    big = {"keypoints": rng.uniform(0, 640, (1500, 2)), "descriptors": rng.standard_normal((1500, 16)),
+           "image_size": (640, 480)}
+    done = threading.Event()
+    worker = threading.Thread(target=lambda: (m.match_many([(big, big)] * 4, num_threads=1), done.set()))
+    counter = 0
+    worker.start()
+    while not done.is_set():
+        counter += 1
+    worker.join()
+    assert counter > 1000, f"the main thread ran only {counter} loop iterations while matching"

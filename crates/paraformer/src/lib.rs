@@ -21,6 +21,7 @@ pub mod config;
 pub mod error;
 pub mod features;
 pub mod flops;
+pub mod geometry;
 pub mod kernels;
 pub mod layers;
 pub mod matcher;
