@@ -19,6 +19,7 @@
 pub mod attention;
 pub mod config;
 pub mod error;
+pub mod eval;
 pub mod features;
 pub mod flops;
 pub mod geometry;

@@ -138,7 +138,7 @@ pub fn normalize(points: &[Point]) -> Option<(Matrix3<f64>, Vec<Point>)> {
     let n = points.len() as f64;
     let (cx, cy) = points.iter().fold((0.0, 0.0), |(a, b), p| (a + p[0] / n, b + p[1] / n));
     let mean = points.iter().map(|p| ((p[0] - cx).powi(2) + (p[1] - cy).powi(2)).sqrt()).sum::<f64>() / n;
-    if !(mean > 1e-12) {
+    if mean.is_nan() || mean <= 1e-12 {
         return None;
     }
     let s = std::f64::consts::SQRT_2 / mean;

@@ -1,0 +1,79 @@
+//! Descriptor-matching baselines on the same features: nearest neighbour, mutual
+//! nearest neighbour, and Lowe's ratio test (Euclidean descriptor distance).
+
+/// Squared Euclidean distances `[M, N]` between rows of `d0` `[M, D]` and `d1` `[N, D]`.
+fn distances(d0: &[f32], d1: &[f32], dim: usize) -> Vec<f32> {
+    let (m, n) = (d0.len() / dim.max(1), d1.len() / dim.max(1));
+    let mut out = vec![0.0f32; m * n];
+    for i in 0..m {
+        let a = &d0[i * dim..(i + 1) * dim];
+        for j in 0..n {
+            let b = &d1[j * dim..(j + 1) * dim];
+            out[i * n + j] = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+        }
+    }
+    out
+}
+
+/// Which baseline.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Baseline {
+    NearestNeighbour,
+    MutualNearestNeighbour,
+    /// Keep matches whose best distance is below `ratio` × the second best.
+    RatioTest { ratio: f32 },
+}
+
+/// `matches0` `[M]` (−1 = unmatched) by a baseline.
+pub fn match_descriptors(d0: &[f32], d1: &[f32], dim: usize, method: Baseline) -> Vec<i64> {
+    let (m, n) = (d0.len() / dim.max(1), d1.len() / dim.max(1));
+    if m == 0 || n == 0 {
+        return vec![-1; m];
+    }
+    let dist = distances(d0, d1, dim);
+    let nn0: Vec<(usize, f32, f32)> = (0..m)
+        .map(|i| {
+            let row = &dist[i * n..(i + 1) * n];
+            let (mut b, mut bd, mut sd) = (0, f32::INFINITY, f32::INFINITY);
+            for (j, &d) in row.iter().enumerate() {
+                if d < bd {
+                    (sd, bd, b) = (bd, d, j);
+                } else if d < sd {
+                    sd = d;
+                }
+            }
+            (b, bd, sd)
+        })
+        .collect();
+    match method {
+        Baseline::NearestNeighbour => nn0.iter().map(|&(j, _, _)| j as i64).collect(),
+        Baseline::MutualNearestNeighbour => {
+            let nn1: Vec<usize> = (0..n)
+                .map(|j| (0..m).min_by(|&a, &b| dist[a * n + j].total_cmp(&dist[b * n + j])).unwrap_or(0))
+                .collect();
+            nn0.iter().enumerate().map(|(i, &(j, _, _))| if nn1[j] == i { j as i64 } else { -1 }).collect()
+        }
+        Baseline::RatioTest { ratio } => nn0
+            .iter()
+            .map(|&(j, bd, sd)| if bd.sqrt() < ratio * sd.sqrt() { j as i64 } else { -1 })
+            .collect(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn baselines_on_a_small_example() {
+        // d0 rows: (0,0), (1,0), (5,5); d1 rows: (0.1,0), (0.9,0), (5,4).
+        let d0 = [0.0, 0.0, 1.0, 0.0, 5.0, 5.0];
+        let d1 = [0.1, 0.0, 0.9, 0.0, 5.0, 4.0, 0.2, 0.0];
+        assert_eq!(match_descriptors(&d0, &d1, 2, Baseline::NearestNeighbour), vec![0, 1, 2]);
+        // d1 row 3 (0.2, 0) is nearer to d0 row 0 than row 0 of d1 is? no: 0.1 < 0.2 — mutual holds.
+        assert_eq!(match_descriptors(&d0, &d1, 2, Baseline::MutualNearestNeighbour), vec![0, 1, 2]);
+        // Row 0: best 0.1, second 0.2 → ratio 0.5 < 0.8 kept; row 1: 0.1 vs 0.8 kept; row 2 kept.
+        assert_eq!(match_descriptors(&d0, &d1, 2, Baseline::RatioTest { ratio: 0.4 }), vec![-1, 1, 2]);
+        assert_eq!(match_descriptors(&[], &d1, 2, Baseline::NearestNeighbour), Vec::<i64>::new());
+    }
+}

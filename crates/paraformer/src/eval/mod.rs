@@ -1,0 +1,6 @@
+//! Evaluation: metrics (pose and homography AUC, precision/recall/F1, MMA),
+//! ground-truth matches from a homography, and descriptor-matching baselines.
+
+pub mod baselines;
+pub mod ground_truth;
+pub mod metrics;
