@@ -2,7 +2,11 @@
 import os
 from typing import Optional, Union, final
 
-__all__ = ["_Matcher", "flops", "ParaformerError", "WeightsError", "__version__"]
+__all__ = [
+    "_Matcher", "flops", "find_homography", "find_fundamental", "find_relative_pose", "pose_auc",
+    "pose_auc_approx", "homography_corner_error", "gt_matches_from_homography", "match_baseline",
+    "ParaformerError", "WeightsError", "__version__",
+]
 
 __version__: str
 
@@ -31,3 +35,23 @@ class _Matcher:
     ) -> list[dict]: ...
 
 def flops(config_json: str, m: int, n: int) -> tuple[int, int, int]: ...
+
+_Fit = tuple[Optional[list[float]], list[bool], Optional[str]]
+
+def find_homography(
+    points0: bytes, points1: bytes, threshold: float = 3.0, confidence: float = 0.999,
+    max_iterations: int = 10000, seed: int = 0,
+) -> _Fit: ...
+def find_fundamental(
+    points0: bytes, points1: bytes, threshold: float = 1.0, confidence: float = 0.999,
+    max_iterations: int = 10000, seed: int = 0,
+) -> _Fit: ...
+def find_relative_pose(
+    points0: bytes, points1: bytes, k0: list[float], k1: list[float], threshold: float = 1.0,
+    confidence: float = 0.999, max_iterations: int = 10000, seed: int = 0,
+) -> tuple[Optional[tuple[list[float], list[float], list[float]]], list[bool], Optional[str]]: ...
+def pose_auc(errors: list[float], thresholds: list[float]) -> list[float]: ...
+def pose_auc_approx(errors: list[float], thresholds: list[int]) -> list[float]: ...
+def homography_corner_error(h_est: list[float], h_gt: list[float], width: float, height: float) -> float: ...
+def gt_matches_from_homography(h: list[float], kpts0: bytes, kpts1: bytes, threshold: float = 3.0) -> tuple[list[int], list[int]]: ...
+def match_baseline(desc0: bytes, desc1: bytes, dim: int, method: str = "mnn", ratio: float = 0.8) -> list[int]: ...

@@ -6,6 +6,10 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
+use paraformer::eval::baselines::{self, Baseline};
+use paraformer::eval::{ground_truth, metrics};
+use paraformer::geometry::{epipolar, homography, NoModel, RansacConfig, RansacResult};
+use paraformer::nalgebra::Matrix3;
 use paraformer::{Config, Error, Features, MatchOptions, MatchOutput, Matcher, Weights};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyValueError};
@@ -276,6 +280,212 @@ impl PyMatcher {
     }
 }
 
+fn f64s(bytes: &[u8]) -> Vec<f64> {
+    bytes.chunks_exact(8).map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])).collect()
+}
+
+fn points(bytes: &[u8]) -> Vec<[f64; 2]> {
+    f64s(bytes).chunks_exact(2).map(|c| [c[0], c[1]]).collect()
+}
+
+fn mat3(v: &[f64]) -> PyResult<Matrix3<f64>> {
+    if v.len() != 9 {
+        return Err(PyValueError::new_err(format!("expected a 3×3 matrix (9 values), got {}", v.len())));
+    }
+    Ok(Matrix3::from_row_slice(v))
+}
+
+fn rows(m: &Matrix3<f64>) -> Vec<f64> {
+    m.transpose().as_slice().to_vec()
+}
+
+/// A RANSAC result for Python: `(model row-major | None, inliers, reason | None)`.
+type Fit = (Option<Vec<f64>>, Vec<bool>, Option<String>);
+
+fn fit_out(n: usize, r: Result<RansacResult<Matrix3<f64>>, NoModel>) -> Fit {
+    match r {
+        Ok(r) => (Some(rows(&r.model)), r.inliers, None),
+        Err(e) => (None, vec![false; n], Some(e.to_string())),
+    }
+}
+
+/// Robust homography (normalised DLT in RANSAC with local optimisation).
+///
+/// Args:
+///     points0: `[N, 2]` float64 little-endian bytes (image 0).
+///     points1: `[N, 2]` float64 little-endian bytes (image 1).
+///     threshold: inlier transfer error in pixels.
+///     confidence: RANSAC confidence.
+///     max_iterations: upper bound on hypotheses.
+///     seed: sampler seed.
+/// Returns:
+///     `(H row-major or None, inlier mask, reason or None)`.
+#[pyfunction]
+#[pyo3(signature = (points0, points1, threshold = 3.0, confidence = 0.999, max_iterations = 10000, seed = 0))]
+fn find_homography(
+    py: Python<'_>,
+    points0: PyBackedBytes,
+    points1: PyBackedBytes,
+    threshold: f64,
+    confidence: f64,
+    max_iterations: usize,
+    seed: u64,
+) -> Fit {
+    let cfg = RansacConfig { threshold, confidence, max_iterations, seed, ..Default::default() };
+    py.detach(|| {
+        let (x0, x1) = (points(&points0), points(&points1));
+        fit_out(x0.len(), homography::find_homography(&x0, &x1, &cfg))
+    })
+}
+
+/// Robust fundamental matrix (normalised 8-point in RANSAC, Sampson distance).
+///
+/// Args:
+///     points0: `[N, 2]` float64 little-endian bytes (image 0).
+///     points1: `[N, 2]` float64 little-endian bytes (image 1).
+///     threshold: inlier Sampson distance in pixels.
+///     confidence: RANSAC confidence.
+///     max_iterations: upper bound on hypotheses.
+///     seed: sampler seed.
+/// Returns:
+///     `(F row-major or None, inlier mask, reason or None)`.
+#[pyfunction]
+#[pyo3(signature = (points0, points1, threshold = 1.0, confidence = 0.999, max_iterations = 10000, seed = 0))]
+fn find_fundamental(
+    py: Python<'_>,
+    points0: PyBackedBytes,
+    points1: PyBackedBytes,
+    threshold: f64,
+    confidence: f64,
+    max_iterations: usize,
+    seed: u64,
+) -> Fit {
+    let cfg = RansacConfig { threshold, confidence, max_iterations, seed, ..Default::default() };
+    py.detach(|| {
+        let (x0, x1) = (points(&points0), points(&points1));
+        fit_out(x0.len(), epipolar::find_fundamental(&x0, &x1, &cfg))
+    })
+}
+
+/// Robust relative pose: essential matrix (8-point + manifold projection) in RANSAC,
+/// then cheirality.
+///
+/// Args:
+///     points0: `[N, 2]` float64 little-endian bytes (pixels, image 0).
+///     points1: `[N, 2]` float64 little-endian bytes (pixels, image 1).
+///     k0: intrinsics of camera 0, 9 values row-major.
+///     k1: intrinsics of camera 1, 9 values row-major.
+///     threshold: inlier Sampson distance in pixels.
+///     confidence: RANSAC confidence.
+///     max_iterations: upper bound on hypotheses.
+///     seed: sampler seed.
+/// Returns:
+///     `((R, t, E) or None, inlier mask, reason or None)`, R and E row-major.
+#[pyfunction]
+#[pyo3(signature = (points0, points1, k0, k1, threshold = 1.0, confidence = 0.999, max_iterations = 10000, seed = 0))]
+#[allow(clippy::too_many_arguments, clippy::type_complexity)]
+fn find_relative_pose(
+    py: Python<'_>,
+    points0: PyBackedBytes,
+    points1: PyBackedBytes,
+    k0: Vec<f64>,
+    k1: Vec<f64>,
+    threshold: f64,
+    confidence: f64,
+    max_iterations: usize,
+    seed: u64,
+) -> PyResult<(Option<(Vec<f64>, Vec<f64>, Vec<f64>)>, Vec<bool>, Option<String>)> {
+    let (k0, k1) = (mat3(&k0)?, mat3(&k1)?);
+    let cfg = RansacConfig { threshold, confidence, max_iterations, seed, ..Default::default() };
+    Ok(py.detach(|| {
+        let (x0, x1) = (points(&points0), points(&points1));
+        match epipolar::find_relative_pose(&x0, &x1, &k0, &k1, &cfg) {
+            Ok(p) => (Some((rows(&p.rotation), p.translation.as_slice().to_vec(), rows(&p.essential))), p.inliers, None),
+            Err(e) => (None, vec![false; x0.len()], Some(e.to_string())),
+        }
+    }))
+}
+
+/// Exact AUC of the recall-vs-error curve (SuperGlue's `pose_auc`).
+///
+/// Args:
+///     errors: per-pair errors (inf for failures).
+///     thresholds: AUC thresholds.
+/// Returns:
+///     One AUC per threshold.
+#[pyfunction]
+#[pyo3(signature = (errors, thresholds))]
+fn pose_auc(errors: Vec<f64>, thresholds: Vec<f64>) -> Vec<f64> {
+    metrics::auc(&errors, &thresholds)
+}
+
+/// Approximate (histogram) AUC: mean accuracy at the integer thresholds 1..=t.
+///
+/// Args:
+///     errors: per-pair errors.
+///     thresholds: integer thresholds.
+/// Returns:
+///     One value per threshold.
+#[pyfunction]
+#[pyo3(signature = (errors, thresholds))]
+fn pose_auc_approx(errors: Vec<f64>, thresholds: Vec<u32>) -> Vec<f64> {
+    metrics::auc_approx(&errors, &thresholds)
+}
+
+/// Mean distance of the image corners under the estimated and the true homography.
+///
+/// Args:
+///     h_est: estimated homography, 9 values row-major.
+///     h_gt: true homography, 9 values row-major.
+///     width: image 0 width.
+///     height: image 0 height.
+/// Returns:
+///     The corner error in pixels.
+#[pyfunction]
+#[pyo3(signature = (h_est, h_gt, width, height))]
+fn homography_corner_error(h_est: Vec<f64>, h_gt: Vec<f64>, width: f64, height: f64) -> PyResult<f64> {
+    Ok(metrics::homography_corner_error(&mat3(&h_est)?, &mat3(&h_gt)?, width, height))
+}
+
+/// Ground-truth matches from a homography (mutual nearest under the symmetric
+/// transfer distance and below `threshold`; −1 unmatched, −2 ignored).
+///
+/// Args:
+///     h: homography image 0 → image 1, 9 values row-major.
+///     kpts0: `[M, 2]` float64 little-endian bytes.
+///     kpts1: `[N, 2]` float64 little-endian bytes.
+///     threshold: pixels.
+/// Returns:
+///     `(matches0, matches1)` as lists of int.
+#[pyfunction]
+#[pyo3(signature = (h, kpts0, kpts1, threshold = 3.0))]
+fn gt_matches_from_homography(h: Vec<f64>, kpts0: PyBackedBytes, kpts1: PyBackedBytes, threshold: f64) -> PyResult<(Vec<i64>, Vec<i64>)> {
+    let gt = ground_truth::matches_from_homography(&mat3(&h)?, &points(&kpts0), &points(&kpts1), threshold);
+    Ok((gt.matches0, gt.matches1))
+}
+
+/// Descriptor-matching baselines.
+///
+/// Args:
+///     desc0: `[M, D]` float32 little-endian bytes.
+///     desc1: `[N, D]` float32 little-endian bytes.
+///     dim: D.
+///     method: "nn", "mnn" or "ratio".
+///     ratio: Lowe's ratio for "ratio".
+/// Returns:
+///     matches0 as a list of int (−1 = unmatched).
+#[pyfunction]
+#[pyo3(signature = (desc0, desc1, dim, method = "mnn", ratio = 0.8))]
+fn match_baseline(desc0: PyBackedBytes, desc1: PyBackedBytes, dim: usize, method: &str, ratio: f32) -> PyResult<Vec<i64>> {
+    let m = match method {
+        "nn" => Baseline::NearestNeighbour,
+        "mnn" => Baseline::MutualNearestNeighbour,
+        "ratio" => Baseline::RatioTest { ratio },
+        other => return Err(PyValueError::new_err(format!("method: expected nn, mnn or ratio, got {other:?}"))),
+    };
+    Ok(baselines::match_descriptors(&f32s(&desc0), &f32s(&desc1), dim, m))
+}
+
 /// Multiply-accumulates of one forward pass (SPEC §10).
 ///
 /// Args:
@@ -297,6 +507,18 @@ fn flops(config_json: &str, m: usize, n: usize) -> PyResult<(u64, u64, u64)> {
 fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyMatcher>()?;
     m.add_function(wrap_pyfunction!(flops, m)?)?;
+    for f in [
+        wrap_pyfunction!(find_homography, m)?,
+        wrap_pyfunction!(find_fundamental, m)?,
+        wrap_pyfunction!(find_relative_pose, m)?,
+        wrap_pyfunction!(pose_auc, m)?,
+        wrap_pyfunction!(pose_auc_approx, m)?,
+        wrap_pyfunction!(homography_corner_error, m)?,
+        wrap_pyfunction!(gt_matches_from_homography, m)?,
+        wrap_pyfunction!(match_baseline, m)?,
+    ] {
+        m.add_function(f)?;
+    }
     m.add("ParaformerError", m.py().get_type::<ParaformerError>())?;
     m.add("WeightsError", m.py().get_type::<WeightsError>())?;
     m.add("__version__", paraformer::VERSION)?;

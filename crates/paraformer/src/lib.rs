@@ -32,6 +32,8 @@ pub mod sinkhorn;
 pub mod wave_pe;
 pub mod weights;
 
+/// Re-exported so that users of the geometry API name the same matrix types.
+pub use nalgebra;
 pub use config::{Config, LayerKind, ModelKind, ParallelSwitches, Pooling, PositionalEncoding};
 pub use error::{Error, Result, TensorProblem};
 pub use features::{read_pair_bytes, read_pair_file, Features};
