@@ -2,5 +2,7 @@
 //! ground-truth matches from a homography, and descriptor-matching baselines.
 
 pub mod baselines;
+pub mod datasets;
 pub mod ground_truth;
 pub mod metrics;
+pub mod synthetic;
