@@ -158,3 +158,26 @@ def test_ground_truth_and_baselines_match_brute_force():
     assert pr["recall"] == 1.0 and 0 < pr["precision"] <= 1.0
     acc = g.mma(np.eye(3), x0[:5], x0[:5] + [0.0, 2.5], np.arange(5), 3)
     np.testing.assert_array_equal(acc, [0.0, 0.0, 1.0])
+
+
+def test_features_file_round_trip(tmp_path):
+    import paraformer
+    rng = np.random.default_rng(0)
+    feats = {"a.png": {"keypoints": rng.uniform(0, 100, (7, 2)), "descriptors": rng.normal(size=(7, 4)),
+                       "image_size": (100, 80)},
+             "dir/b.jpg": {"keypoints": np.zeros((0, 2)), "descriptors": np.zeros((0, 4)), "image_size": (5, 5),
+                           "scores": np.zeros(0)}}
+    p = tmp_path / "f.safetensors"
+    paraformer.features.write(str(p), feats)
+    back = paraformer.features.read(str(p))
+    assert set(back) == {"a.png", "dir/b.jpg"}
+    np.testing.assert_allclose(back["a.png"]["keypoints"], feats["a.png"]["keypoints"], rtol=1e-6)
+    np.testing.assert_array_equal(back["a.png"]["scores"], np.ones(7, np.float32))
+    assert back["dir/b.jpg"]["descriptors"].shape == (0, 4)
+    with pytest.raises(ValueError, match="descriptors"):
+        paraformer.features.write(str(p), {"x": {"keypoints": np.zeros((3, 2)), "descriptors": np.zeros((2, 4)),
+                                                "image_size": (1, 1)}})
+    h5py = pytest.importorskip("h5py", reason="h5py not installed: hloc .h5 round trip skipped")
+    paraformer.features.write_h5(str(tmp_path / "f.h5"), feats)
+    h5 = paraformer.features.read_h5(str(tmp_path / "f.h5"))
+    np.testing.assert_allclose(h5["a.png"]["descriptors"], feats["a.png"]["descriptors"], rtol=1e-6)

@@ -15,9 +15,9 @@ import numpy as np
 
 from ._paraformer import ParaformerError, WeightsError, _Matcher, __version__
 from ._paraformer import flops as _flops
-from . import geometry
+from . import features, geometry
 
-__all__ = ["Matcher", "ParaformerError", "WeightsError", "flops", "geometry", "__version__"]
+__all__ = ["Matcher", "ParaformerError", "WeightsError", "features", "flops", "geometry", "__version__"]
 
 ArrayLike = Any
 Output = dict[str, np.ndarray]

@@ -41,6 +41,44 @@ enum Command {
         #[arg(long)]
         csv: Option<PathBuf>,
     },
+    /// Evaluate matchers on a dataset with precomputed features.
+    Eval {
+        #[command(subcommand)]
+        task: EvalTask,
+    },
+    /// Write seeded synthetic homography pairs (PNG + homographies.txt) from a folder of photos.
+    Synth {
+        #[arg(long)]
+        photos: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value_t = 200)]
+        count: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// 0 (identity) to 1 (corner shifts 25%, rotation ±45°, scale 0.7–1.3).
+        #[arg(long, default_value_t = 0.5)]
+        difficulty: f64,
+    },
+    /// Draw the matches of one pair side by side (inliers green, outliers red) into a PNG.
+    Draw {
+        image0: PathBuf,
+        image1: PathBuf,
+        /// Features file holding both images (by file name).
+        #[arg(long)]
+        features: PathBuf,
+        /// nn, mnn, ratio, ratio:R, or a weights file.
+        #[arg(long, default_value = "mnn")]
+        matcher: String,
+        /// Model that decides inliers: homography or fundamental.
+        #[arg(long, default_value = "homography")]
+        geometry: String,
+        /// RANSAC threshold in pixels.
+        #[arg(long, default_value_t = 3.0)]
+        threshold: f64,
+        #[arg(long, default_value = "matches.png")]
+        out: PathBuf,
+    },
     /// Time matching at the paper's widths with random weights, part by part.
     Bench {
         /// superglue, paraformer or paraformer_u (repeatable; default all three).
@@ -52,6 +90,46 @@ enum Command {
         /// Timed repetitions (the best is reported) after one warm-up run.
         #[arg(long, default_value_t = 3)]
         repeat: usize,
+    },
+}
+
+#[derive(Subcommand)]
+enum EvalTask {
+    /// Homography estimation: corner-error AUC@1/3/5/10 px, precision/recall/F1, MMA.
+    Homography {
+        /// An HPatches-style folder (img1..N + H1toNp / H_1_N) or a homographies.txt list.
+        #[arg(long)]
+        data: PathBuf,
+        /// Features file (safetensors: `{image}::keypoints|scores|descriptors|image_size`).
+        #[arg(long)]
+        features: PathBuf,
+        /// Comma-separated: nn, mnn, ratio, ratio:R, or weights files.
+        #[arg(long, value_delimiter = ',', default_values_t = vec!["nn".to_string(), "mnn".to_string(), "ratio".to_string()])]
+        matcher: Vec<String>,
+        /// RANSAC inlier threshold in pixels.
+        #[arg(long, default_value_t = 3.0)]
+        threshold: f64,
+        /// Write the results as JSON to this file.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// Relative pose: AUC@5/10/20° of max(angle R, angle t), exact and approximate.
+    Pose {
+        /// A Strecha-format scene folder, or a pairs_with_gt.txt file (images beside it in images/).
+        #[arg(long)]
+        data: PathBuf,
+        #[arg(long)]
+        features: PathBuf,
+        #[arg(long, value_delimiter = ',', default_values_t = vec!["nn".to_string(), "mnn".to_string(), "ratio".to_string()])]
+        matcher: Vec<String>,
+        /// RANSAC inlier threshold (Sampson distance, pixels).
+        #[arg(long, default_value_t = 1.0)]
+        threshold: f64,
+        /// Strecha: pair images at most this far apart in the sequence.
+        #[arg(long, default_value_t = 2)]
+        max_gap: usize,
+        #[arg(long)]
+        json: Option<PathBuf>,
     },
 }
 
@@ -131,11 +209,115 @@ fn run(cli: Cli) -> paraformer::Result<()> {
                 }
             }
         }
+        Command::Eval { task } => eval(task)?,
+        Command::Synth { photos, out, count, seed, difficulty } => {
+            let cfg = paraformer::eval::synthetic::SyntheticConfig { count, seed, difficulty };
+            let pairs = paraformer::eval::synthetic::generate(&photos, &out, &cfg)?;
+            println!("wrote {} pairs and {}", pairs.len(), out.join("homographies.txt").display());
+        }
+        Command::Draw { image0, image1, features, matcher, geometry, threshold, out } => {
+            use paraformer::eval::harness::MatcherSpec;
+            let feats = paraformer::eval::datasets::read_features(&features)?;
+            let name = |p: &PathBuf| p.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            let get = |n: String| feats.get(&n).ok_or_else(|| paraformer::Error::InvalidInput { argument: "features".into(), reason: format!("no features for `{n}`") });
+            let (f0, f1) = (get(name(&image0))?, get(name(&image1))?);
+            let spec = MatcherSpec::parse(&matcher)?;
+            let m0 = spec.matches(f0, f1)?;
+            let pairs: Vec<(usize, usize)> = m0.iter().enumerate().filter_map(|(i, &j)| usize::try_from(j).ok().map(|j| (i, j))).collect();
+            let pt = |p: [f32; 2]| [p[0] as f64, p[1] as f64];
+            let (x0, x1): (Vec<_>, Vec<_>) = pairs.iter().map(|&(i, j)| (pt(f0.keypoints[i]), pt(f1.keypoints[j]))).unzip();
+            let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
+            let fit = match geometry.as_str() {
+                "homography" => paraformer::geometry::homography::find_homography(&x0, &x1, &cfg).map(|r| (r.inliers, format!("{:.4}", r.model))),
+                "fundamental" => paraformer::geometry::epipolar::find_fundamental(&x0, &x1, &cfg).map(|r| (r.inliers, format!("{:.4e}", r.model))),
+                other => return Err(paraformer::Error::InvalidInput { argument: "geometry".into(), reason: format!("expected homography or fundamental, got {other}") }),
+            };
+            let (inliers, model) = match fit {
+                Ok((mask, model)) => (mask, model),
+                Err(e) => (vec![false; x0.len()], format!("no model: {e}")),
+            };
+            let load = |p: &PathBuf| image::open(p).map(|i| i.to_rgb8()).map_err(|e| paraformer::Error::InvalidInput { argument: p.display().to_string(), reason: e.to_string() });
+            let lines: Vec<_> = x0.iter().zip(&x1).zip(&inliers).map(|((a, b), &i)| (*a, *b, i)).collect();
+            let canvas = paraformer::eval::draw::draw_matches(&load(&image0)?, &load(&image1)?, &lines);
+            canvas.save(&out).map_err(|e| paraformer::Error::InvalidInput { argument: out.display().to_string(), reason: e.to_string() })?;
+            println!("{} × {} keypoints, {} matches ({}), {} inliers ({geometry}); model:{model}", f0.len(), f1.len(), x0.len(), spec.name(), inliers.iter().filter(|&&b| b).count());
+            println!("wrote {}", out.display());
+        }
         Command::Inspect { weights } => {
             let w = Weights::from_file(&weights)?;
             let matcher = Matcher::from_weights(&w)?;
             println!("{}", matcher.config().to_json());
             println!("{} tensors, all present with the expected shapes", w.names().count());
+        }
+    }
+    Ok(())
+}
+
+/// A textual progress bar on stderr.
+fn progress(label: &str) -> impl FnMut(usize, usize) + '_ {
+    move |i, n| {
+        let width = 30;
+        let filled = (i * width).checked_div(n).unwrap_or(width);
+        eprint!("\r{label:<16} [{}{}] {i}/{n}", "#".repeat(filled), ".".repeat(width - filled));
+        if i == n {
+            eprintln!();
+        }
+    }
+}
+
+fn eval(task: EvalTask) -> paraformer::Result<()> {
+    use paraformer::eval::{datasets, harness};
+    let write_json = |path: &Option<PathBuf>, value: serde_json::Value| -> paraformer::Result<()> {
+        if let Some(p) = path {
+            let text = serde_json::to_string_pretty(&value).unwrap_or_default();
+            std::fs::write(p, text).map_err(|source| paraformer::Error::Io { path: p.clone(), source })?;
+            println!("wrote {}", p.display());
+        }
+        Ok(())
+    };
+    match task {
+        EvalTask::Homography { data, features, matcher, threshold, json } => {
+            let pairs = if data.is_file() { datasets::read_homography_list(&data)? } else { datasets::read_hpatches_folder(&data)? };
+            let feats = datasets::read_features(&features)?;
+            let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
+            let mut rows = Vec::new();
+            for m in &matcher {
+                let spec = harness::MatcherSpec::parse(m)?;
+                rows.push(harness::eval_homography(&pairs, &feats, &spec, &cfg, progress(spec.name()))?);
+            }
+            println!("{} pairs from {}", pairs.len(), data.display());
+            println!("{:<18} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8}", "matcher", "AUC@1", "AUC@3", "AUC@5", "AUC@10", "P", "R", "F1", "MMA@3", "matches");
+            for r in &rows {
+                println!(
+                    "{:<18} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>8.1}",
+                    r.matcher, r.auc[0], r.auc[1], r.auc[2], r.auc[3], r.precision, r.recall, r.f1, r.mma[2], r.mean_matches
+                );
+            }
+            write_json(&json, serde_json::json!({ "task": "homography", "data": data, "features": features, "rows": rows }))?;
+        }
+        EvalTask::Pose { data, features, matcher, threshold, max_gap, json } => {
+            let pairs = if data.is_file() {
+                let dir = data.parent().map(|p| p.join("images")).unwrap_or_default();
+                datasets::read_pairs_with_gt(&data, &dir)?
+            } else {
+                datasets::read_strecha(&data, max_gap)?
+            };
+            let feats = datasets::read_features(&features)?;
+            let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
+            let mut rows = Vec::new();
+            for m in &matcher {
+                let spec = harness::MatcherSpec::parse(m)?;
+                rows.push(harness::eval_pose(&pairs, &feats, &spec, &cfg, progress(spec.name()))?);
+            }
+            println!("{} pairs from {}", pairs.len(), data.display());
+            println!("{:<18} {:>7} {:>7} {:>7} {:>9} {:>9} {:>9} {:>8} {:>8}", "matcher", "AUC@5", "AUC@10", "AUC@20", "~AUC@5", "~AUC@10", "~AUC@20", "matches", "inliers");
+            for r in &rows {
+                println!(
+                    "{:<18} {:>7.2} {:>7.2} {:>7.2} {:>9.2} {:>9.2} {:>9.2} {:>8.1} {:>8.1}",
+                    r.matcher, r.auc[0], r.auc[1], r.auc[2], r.auc_approx[0], r.auc_approx[1], r.auc_approx[2], r.mean_matches, r.mean_inliers
+                );
+            }
+            write_json(&json, serde_json::json!({ "task": "pose", "data": data, "features": features, "rows": rows }))?;
         }
     }
     Ok(())

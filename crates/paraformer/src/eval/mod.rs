@@ -3,6 +3,8 @@
 
 pub mod baselines;
 pub mod datasets;
+pub mod draw;
 pub mod ground_truth;
+pub mod harness;
 pub mod metrics;
 pub mod synthetic;
