@@ -26,8 +26,10 @@ def pose_scene(seed, n=300, outlier_ratio=0.3, noise=0.5):
     rng = np.random.default_rng(seed)
     K = np.array([[520.0, 0, 320], [0, 520.0, 240], [0, 0, 1]])
     a = rng.normal(0, 0.15, 3)
-    import cv2
-    R = cv2.Rodrigues(a)[0]
+    theta = np.linalg.norm(a)
+    k = a / theta
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    R = np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx  # Rodrigues
     t = rng.normal(0, 1, 3)
     t /= np.linalg.norm(t)
     X = np.c_[rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), rng.uniform(5, 12, n)]
