@@ -302,11 +302,17 @@ fn rows(m: &Matrix3<f64>) -> Vec<f64> {
 /// A RANSAC result for Python: `(model row-major | None, inliers, reason | None)`.
 type Fit = (Option<Vec<f64>>, Vec<bool>, Option<String>);
 
-fn fit_out(n: usize, r: Result<RansacResult<Matrix3<f64>>, NoModel>) -> Fit {
-    match r {
-        Ok(r) => (Some(rows(&r.model)), r.inliers, None),
-        Err(e) => (None, vec![false; n], Some(e.to_string())),
-    }
+type Robust = fn(&[[f64; 2]], &[[f64; 2]], &RansacConfig) -> Result<RansacResult<Matrix3<f64>>, NoModel>;
+
+/// Runs a robust estimator on two point buffers with the GIL released.
+fn robust_fit(py: Python<'_>, points0: &[u8], points1: &[u8], cfg: RansacConfig, estimate: Robust) -> Fit {
+    py.detach(|| {
+        let (x0, x1) = (points(points0), points(points1));
+        match estimate(&x0, &x1, &cfg) {
+            Ok(r) => (Some(rows(&r.model)), r.inliers, None),
+            Err(e) => (None, vec![false; x0.len()], Some(e.to_string())),
+        }
+    })
 }
 
 /// Robust homography (normalised DLT in RANSAC with local optimisation).
@@ -332,10 +338,7 @@ fn find_homography(
     seed: u64,
 ) -> Fit {
     let cfg = RansacConfig { threshold, confidence, max_iterations, seed, ..Default::default() };
-    py.detach(|| {
-        let (x0, x1) = (points(&points0), points(&points1));
-        fit_out(x0.len(), homography::find_homography(&x0, &x1, &cfg))
-    })
+    robust_fit(py, &points0, &points1, cfg, homography::find_homography)
 }
 
 /// Robust fundamental matrix (normalised 8-point in RANSAC, Sampson distance).
@@ -361,10 +364,7 @@ fn find_fundamental(
     seed: u64,
 ) -> Fit {
     let cfg = RansacConfig { threshold, confidence, max_iterations, seed, ..Default::default() };
-    py.detach(|| {
-        let (x0, x1) = (points(&points0), points(&points1));
-        fit_out(x0.len(), epipolar::find_fundamental(&x0, &x1, &cfg))
-    })
+    robust_fit(py, &points0, &points1, cfg, epipolar::find_fundamental)
 }
 
 /// Robust relative pose: essential matrix (8-point + manifold projection) in RANSAC,
