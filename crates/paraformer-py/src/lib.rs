@@ -7,6 +7,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use paraformer::eval::baselines::{self, Baseline};
+use paraformer::features::f32_from_le;
 use paraformer::eval::{ground_truth, metrics};
 use paraformer::geometry::{epipolar, homography, NoModel, RansacConfig, RansacResult};
 use paraformer::nalgebra::Matrix3;
@@ -49,10 +50,6 @@ fn to_py_err(e: Error) -> PyErr {
     }
 }
 
-fn f32s(bytes: &[u8]) -> Vec<f32> {
-    bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
-}
-
 /// One image as the Python layer passes it: `(kpts_f32le, desc_f32le, D, scores_f32le | None, w, h)`.
 #[derive(FromPyObject)]
 struct RawFeatures(PyBackedBytes, PyBackedBytes, usize, Option<PyBackedBytes>, f32, f32);
@@ -63,8 +60,8 @@ impl RawFeatures {
         if kpts.len() % 8 != 0 || desc.len() % 4 != 0 {
             return Err(PyValueError::new_err(format!("kpts{image}/desc{image}: buffers are not whole float32 rows")));
         }
-        let keypoints = f32s(kpts).chunks_exact(2).map(|c| [c[0], c[1]]).collect();
-        Ok(Features::new(keypoints, scores.as_ref().map(|s| f32s(s)), f32s(desc), *d, (*w, *h)))
+        let keypoints = f32_from_le(kpts).chunks_exact(2).map(|c| [c[0], c[1]]).collect();
+        Ok(Features::new(keypoints, scores.as_ref().map(|s| f32_from_le(s)), f32_from_le(desc), *d, (*w, *h)))
     }
 }
 
@@ -483,7 +480,7 @@ fn match_baseline(desc0: PyBackedBytes, desc1: PyBackedBytes, dim: usize, method
         "ratio" => Baseline::RatioTest { ratio },
         other => return Err(PyValueError::new_err(format!("method: expected nn, mnn or ratio, got {other:?}"))),
     };
-    Ok(baselines::match_descriptors(&f32s(&desc0), &f32s(&desc1), dim, m))
+    Ok(baselines::match_descriptors(&f32_from_le(&desc0), &f32_from_le(&desc1), dim, m))
 }
 
 /// Multiply-accumulates of one forward pass (SPEC §10).

@@ -92,6 +92,46 @@ impl Features {
     }
 }
 
+/// Little-endian `f32` values from raw tensor bytes (a trailing partial value is ignored).
+pub fn f32_from_le(bytes: &[u8]) -> Vec<f32> {
+    bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+}
+
+/// The shape and values of an `F32` tensor, `None` when absent, an error naming the
+/// tensor when it has another dtype.
+pub(crate) fn f32_tensor(st: &SafeTensors, name: &str) -> Result<Option<(Vec<usize>, Vec<f32>)>> {
+    let Ok(view) = st.tensor(name) else { return Ok(None) };
+    if view.dtype() != Dtype::F32 {
+        return Err(Error::input(name, format!("expected F32, got {:?}", view.dtype())));
+    }
+    Ok(Some((view.shape().to_vec(), f32_from_le(view.data()))))
+}
+
+/// One image's features stored as `keypoints` `[K, 2]`, `descriptors` `[K, D]`,
+/// `image_size` `[2]` and optional `scores` `[K]`, under the names `name(field)` —
+/// the layout of pair files and of features files.
+pub(crate) fn features_from_safetensors(st: &SafeTensors, name: impl Fn(&str) -> String) -> Result<Features> {
+    let need = |field: &str| -> Result<(Vec<usize>, Vec<f32>)> {
+        let n = name(field);
+        f32_tensor(st, &n)?.ok_or_else(|| Error::input(n, "missing"))
+    };
+    let (kshape, k) = need("keypoints")?;
+    if kshape.len() != 2 || kshape[1] != 2 {
+        return Err(Error::input(name("keypoints"), format!("expected shape [K, 2], got {kshape:?}")));
+    }
+    let (dshape, d) = need("descriptors")?;
+    if dshape.len() != 2 {
+        return Err(Error::input(name("descriptors"), format!("expected shape [K, D], got {dshape:?}")));
+    }
+    let (_, size) = need("image_size")?;
+    if size.len() != 2 {
+        return Err(Error::input(name("image_size"), "expected 2 values (width, height)"));
+    }
+    let scores = f32_tensor(st, &name("scores"))?.map(|(_, s)| s);
+    let kpts = k.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
+    Ok(Features::new(kpts, scores, d, dshape[1], (size[0], size[1])))
+}
+
 /// Reads a pair file: a safetensors file with `keypoints0/1` `[K,2]`, `scores0/1` `[K]`
 /// (optional), `descriptors0/1` `[K,D]` and `image_size0/1` `[2]` (width, height),
 /// all f32 — the input format of the SPEC test vectors.
@@ -104,33 +144,6 @@ pub fn read_pair_file(path: impl AsRef<Path>) -> Result<(Features, Features)> {
 /// [`read_pair_file`] from bytes.
 pub fn read_pair_bytes(bytes: &[u8]) -> Result<(Features, Features)> {
     let st = SafeTensors::deserialize(bytes).map_err(|e| Error::WeightsFormat(e.to_string()))?;
-    let get = |name: &str| -> Result<Option<(Vec<usize>, Vec<f32>)>> {
-        let Ok(view) = st.tensor(name) else { return Ok(None) };
-        if view.dtype() != Dtype::F32 {
-            return Err(Error::input(name, format!("expected F32, got {:?}", view.dtype())));
-        }
-        let data = view.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-        Ok(Some((view.shape().to_vec(), data)))
-    };
-    let need = |name: &str| -> Result<(Vec<usize>, Vec<f32>)> {
-        get(name)?.ok_or_else(|| Error::input(name, "missing from pair file"))
-    };
-    let one = |i: usize| -> Result<Features> {
-        let (kshape, k) = need(&format!("keypoints{i}"))?;
-        if kshape.len() != 2 || kshape[1] != 2 {
-            return Err(Error::input(format!("keypoints{i}"), format!("expected shape [K, 2], got {kshape:?}")));
-        }
-        let (dshape, d) = need(&format!("descriptors{i}"))?;
-        if dshape.len() != 2 {
-            return Err(Error::input(format!("descriptors{i}"), format!("expected shape [K, D], got {dshape:?}")));
-        }
-        let (_, size) = need(&format!("image_size{i}"))?;
-        if size.len() != 2 {
-            return Err(Error::input(format!("image_size{i}"), "expected 2 values (width, height)"));
-        }
-        let scores = get(&format!("scores{i}"))?.map(|(_, s)| s);
-        let kpts = k.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
-        Ok(Features::new(kpts, scores, d, dshape[1], (size[0], size[1])))
-    };
+    let one = |i: usize| features_from_safetensors(&st, |field| format!("{field}{i}"));
     Ok((one(0)?, one(1)?))
 }

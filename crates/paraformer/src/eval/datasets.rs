@@ -17,10 +17,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Matrix3, Vector3};
-use safetensors::{Dtype, SafeTensors};
+use safetensors::SafeTensors;
 
 use crate::error::{Error, Result};
-use crate::features::Features;
+use crate::features::{features_from_safetensors, Features};
 
 /// Two images related by a homography (image 0 → image 1).
 #[derive(Debug, Clone, PartialEq)]
@@ -182,24 +182,11 @@ pub fn read_pairs_with_gt(file: &Path, image_dir: &Path) -> Result<Vec<PosePair>
 pub fn read_features(path: &Path) -> Result<BTreeMap<String, Features>> {
     let bytes = std::fs::read(path).map_err(io(path))?;
     let st = SafeTensors::deserialize(&bytes).map_err(|e| Error::WeightsFormat(e.to_string()))?;
-    let get = |name: &str| -> Result<(Vec<usize>, Vec<f32>)> {
-        let v = st.tensor(name).map_err(|_| Error::input(path.display().to_string(), format!("missing `{name}`")))?;
-        if v.dtype() != Dtype::F32 {
-            return Err(Error::input(name, format!("expected F32, got {:?}", v.dtype())));
-        }
-        Ok((v.shape().to_vec(), v.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()))
-    };
     let mut out = BTreeMap::new();
     for name in st.names() {
         let Some(image) = name.strip_suffix("::keypoints") else { continue };
-        let (_, k) = get(name)?;
-        let (dshape, d) = get(&format!("{image}::descriptors"))?;
-        let (_, s) = get(&format!("{image}::scores"))?;
-        let (_, size) = get(&format!("{image}::image_size"))?;
-        let dim = dshape.get(1).copied().unwrap_or(0);
-        let kp = k.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
-        let f = Features::new(kp, Some(s), d, dim, (size.first().copied().unwrap_or(0.0), size.get(1).copied().unwrap_or(0.0)));
-        f.validate(dim, 0).map_err(|e| Error::input(image, e.to_string()))?;
+        let f = features_from_safetensors(&st, |field| format!("{image}::{field}"))?;
+        f.validate(f.descriptor_dim, 0).map_err(|e| Error::input(image, e.to_string()))?;
         out.insert(image.to_string(), f);
     }
     Ok(out)

@@ -51,7 +51,7 @@ pub fn serialize(entries: &[Entry], meta: &HashMap<String, String>) -> Vec<u8> {
 }
 
 pub fn f32s(e: &Entry) -> Vec<f32> {
-    e.data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+    paraformer::features::f32_from_le(&e.data)
 }
 
 pub fn i64s(e: &Entry) -> Vec<i64> {
