@@ -11,13 +11,12 @@ use paraformer::layers::{ParallelLayer, SerialLayer};
 use paraformer::sinkhorn::log_optimal_transport_inplace;
 use paraformer::wave_pe::WavePe;
 use paraformer::weights::random_var_builder;
-use paraformer::{Config, LayerKind, MatchOptions, Matcher, ParallelSwitches};
-use paraformer_benches::random_features;
+use paraformer::{Config, Features, LayerKind, MatchOptions, Matcher, ParallelSwitches};
 
 const KEYPOINTS: [usize; 3] = [512, 1024, 2048];
 
 fn random_matrix(rows: usize, cols: usize, seed: u64) -> Matrix {
-    let f = random_features(rows, cols, seed);
+    let f = Features::random(rows, cols, seed);
     Matrix { rows, cols, data: f.descriptors }
 }
 
@@ -28,7 +27,7 @@ fn end_to_end(c: &mut Criterion) {
         let cfg = Config::preset(name).expect("preset");
         let matcher = Matcher::random(cfg.clone(), 0).expect("random weights");
         for k in KEYPOINTS {
-            let (f0, f1) = (random_features(k, 256, 1), random_features(k, 256, 2));
+            let (f0, f1) = (Features::random(k, 256, 1), Features::random(k, 256, 2));
             g.bench_with_input(BenchmarkId::new(name, k), &k, |b, _| {
                 b.iter(|| matcher.match_pair_with(&f0, &f1, MatchOptions::default()).expect("runs"))
             });
@@ -53,7 +52,7 @@ fn parts(c: &mut Criterion) {
         g.bench_with_input(BenchmarkId::new("serial_cross_layer", k), &k, |b, _| {
             b.iter(|| serial.forward(&ctx, &x, &y).expect("runs"))
         });
-        let pos = Matrix { rows: k, cols: 3, data: random_features(k, 3, 6).descriptors };
+        let pos = Matrix { rows: k, cols: 3, data: Features::random(k, 3, 6).descriptors };
         g.bench_with_input(BenchmarkId::new("wave_pe_encoder", k), &k, |b, _| {
             b.iter(|| wave.forward(&ctx, x.clone(), &pos).expect("runs"))
         });

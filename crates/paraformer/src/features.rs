@@ -35,6 +35,18 @@ impl Features {
         Self { keypoints, scores, descriptors, descriptor_dim, image_size }
     }
 
+    /// `k` random keypoints in a 640×480 image with random `d`-wide descriptors and
+    /// scores, from a SplitMix64 stream: inputs for benchmarks and tests (they match
+    /// nothing meaningful).
+    pub fn random(k: usize, d: usize, seed: u64) -> Self {
+        let mut rng = crate::pooling::SplitMix64::new(seed);
+        let mut next = move || (rng.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
+        let kpts = (0..k).map(|_| [next() * 640.0, next() * 480.0]).collect();
+        let scores = (0..k).map(|_| next()).collect();
+        let desc = (0..k * d).map(|_| next() - 0.5).collect();
+        Features::new(kpts, Some(scores), desc, d, (640.0, 480.0))
+    }
+
     /// Number of keypoints `K`.
     pub fn len(&self) -> usize {
         self.keypoints.len()

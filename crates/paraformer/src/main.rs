@@ -135,22 +135,6 @@ enum EvalTask {
 
 const MODELS: [&str; 3] = ["superglue", "paraformer", "paraformer_u"];
 
-/// Random features with the given descriptor width.
-fn random_features(k: usize, d: usize, seed: u64) -> Features {
-    let mut state = seed;
-    let mut next = || {
-        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    };
-    let kpts = (0..k).map(|_| [next() * 640.0, next() * 480.0]).collect();
-    let scores = (0..k).map(|_| next()).collect();
-    let desc = (0..k * d).map(|_| next() - 0.5).collect();
-    Features::new(kpts, Some(scores), desc, d, (640.0, 480.0))
-}
-
 fn run(cli: Cli) -> paraformer::Result<()> {
     match cli.command {
         Command::Demo { weights, pair } => {
@@ -190,7 +174,7 @@ fn run(cli: Cli) -> paraformer::Result<()> {
                 let cfg = Config::preset(name)?;
                 let matcher = Matcher::random(cfg.clone(), 0)?;
                 for &k in &keypoints {
-                    let (f0, f1) = (random_features(k, cfg.descriptor_dim, 1), random_features(k, cfg.descriptor_dim, 2));
+                    let (f0, f1) = (Features::random(k, cfg.descriptor_dim, 1), Features::random(k, cfg.descriptor_dim, 2));
                     matcher.profile(&f0, &f1, MatchOptions::default())?;
                     let mut best: Option<paraformer::Profile> = None;
                     for _ in 0..repeat.max(1) {

@@ -53,7 +53,6 @@ pub fn top_k(scores: &[f32], k: usize) -> Vec<usize> {
 #[derive(Debug, Clone)]
 pub struct PoolIndex {
     pub rows: Vec<usize>,
-    pub from_len: usize,
 }
 
 /// One pooling step, prefix `pools.{p}`: `proj` and, for gPool, `score`.
@@ -123,7 +122,7 @@ impl Pool {
                 }
             }
         }
-        Ok((out, PoolIndex { rows, from_len: n }))
+        Ok((out, PoolIndex { rows }))
     }
 }
 
