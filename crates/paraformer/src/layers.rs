@@ -8,7 +8,7 @@ use crate::attention::{attention, cross_attention_shared, Attention, Projections
 use crate::config::{LayerKind, ParallelSwitches};
 use crate::error::Result;
 use crate::kernels::{gelu, layer_norm, Ctx, Matrix, View};
-use crate::mlp::{add_assign, read, Linear, Mlp};
+use crate::mlp::{add_assign, read, with_room, Linear, Mlp};
 
 /// The parallel layer's projections, prefix `attn`. With sharing on, `proj` and
 /// `merge` serve both branches; with it off, `self_*` and `cross_*` are separate.
@@ -135,10 +135,7 @@ impl ParallelLayer {
     /// `f + fuse([f, merge(self), merge(cross)])`; the merges write straight into the concat.
     fn update(&self, ctx: &Ctx, f: &Matrix, self_msg: &Matrix, cross_msg: &Matrix) -> Result<Matrix> {
         let c = f.cols;
-        let mut cat = Matrix::zeros(f.rows, 3 * c);
-        for (dst, src) in cat.data.chunks_exact_mut(3 * c).zip(f.data.chunks_exact(c)) {
-            dst[..c].copy_from_slice(src);
-        }
+        let mut cat = with_room(f, 2 * c);
         self.attn.self_merge.forward_into(ctx, self_msg.view(), &mut cat.data[c..], 3 * c)?;
         self.attn.cross_merge.forward_into(ctx, cross_msg.view(), &mut cat.data[2 * c..], 3 * c)?;
         let mut out = self.fuse.forward(ctx, cat.view())?;
@@ -162,10 +159,7 @@ impl SerialLayer {
 
     fn update(&self, ctx: &Ctx, f: &Matrix, src: &Matrix) -> Result<Matrix> {
         let c = f.cols;
-        let mut cat = Matrix::zeros(f.rows, 2 * c);
-        for (dst, s) in cat.data.chunks_exact_mut(2 * c).zip(f.data.chunks_exact(c)) {
-            dst[..c].copy_from_slice(s);
-        }
+        let mut cat = with_room(f, c);
         self.attn.forward_into(ctx, f.view(), src.view(), &mut cat.data[c..], 2 * c)?;
         let mut out = self.mlp.forward(ctx, cat.view())?;
         add_assign(&mut out, f);

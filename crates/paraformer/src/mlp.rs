@@ -69,6 +69,11 @@ impl Linear {
         for r in 0..x.rows {
             dst[r * dst_stride..r * dst_stride + n].copy_from_slice(&self.bias[c0..c1]);
         }
+        self.accumulate(ctx, x, c0, c1, dst, dst_stride)
+    }
+
+    /// `dst += x·Wᵀ` for output columns `c0..c1`.
+    fn accumulate(&self, ctx: &Ctx, x: View, c0: usize, c1: usize, dst: &mut [f32], dst_stride: usize) -> Result<()> {
         let w = View { data: &self.wt, rows: self.in_dim, cols: self.out_dim, stride: self.out_dim }.cols(c0, c1);
         ctx.gemm(dst, dst_stride, x, false, w, false, 1.0, true, true)
     }
@@ -86,8 +91,7 @@ impl Linear {
         for _ in 0..x.rows {
             data.extend_from_slice(&self.bias[c0..c1]);
         }
-        let w = View { data: &self.wt, rows: self.in_dim, cols: self.out_dim, stride: self.out_dim }.cols(c0, c1);
-        ctx.gemm(&mut data, n, x, false, w, false, 1.0, true, true)?;
+        self.accumulate(ctx, x, c0, c1, &mut data, n)?;
         Matrix::from_vec(x.rows, n, data)
     }
 
@@ -136,6 +140,17 @@ impl Mlp {
         }
         Ok(h.unwrap_or_else(|| x.to_matrix()))
     }
+}
+
+/// `f` `[K, C]` copied into the first `C` columns of a zeroed `[K, C + extra]` matrix,
+/// the concat buffer that message projections then write into.
+pub(crate) fn with_room(f: &Matrix, extra: usize) -> Matrix {
+    let c = f.cols;
+    let mut cat = Matrix::zeros(f.rows, c + extra);
+    for (dst, src) in cat.data.chunks_exact_mut(c + extra).zip(f.data.chunks_exact(c)) {
+        dst[..c].copy_from_slice(src);
+    }
+    cat
 }
 
 /// `a += b` element-wise (residual connections).

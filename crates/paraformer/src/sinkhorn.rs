@@ -9,17 +9,6 @@ use crate::kernels::{axpy, dot, exp_row, logsumexp_plus};
 /// Rows handed to one rayon task at a time.
 const MIN_ROWS: usize = 16;
 
-/// The log assignment `P` `[M+1, N+1]` for scores `S` `[M, N]` (row-major) and the
-/// dustbin score, after `iters` Sinkhorn iterations.
-pub fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32, iters: usize) -> Matrix {
-    let mut z = Matrix::zeros(m + 1, n + 1);
-    for i in 0..m {
-        z.data[i * (n + 1)..i * (n + 1) + n].copy_from_slice(&scores[i * n..(i + 1) * n]);
-    }
-    log_optimal_transport_inplace(&mut z, bin_score, iters);
-    z
-}
-
 /// The couplings' dustbins and SPEC §8's marginals: fills the last row and column of
 /// `z` with `bin_score`; returns `(norm, log_mu, log_nu)`.
 fn couplings_and_marginals(z: &mut Matrix, bin_score: f32) -> (f32, Vec<f32>, Vec<f32>) {
@@ -210,6 +199,17 @@ pub fn extract_matches(p: &Matrix, threshold: f32) -> Matches {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+/// The log assignment `P` `[M+1, N+1]` for scores `S` `[M, N]` (row-major) and the
+/// dustbin score, after `iters` Sinkhorn iterations.
+fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32, iters: usize) -> Matrix {
+    let mut z = Matrix::zeros(m + 1, n + 1);
+    for i in 0..m {
+        z.data[i * (n + 1)..i * (n + 1) + n].copy_from_slice(&scores[i * n..(i + 1) * n]);
+    }
+    log_optimal_transport_inplace(&mut z, bin_score, iters);
+    z
+}
 
     fn scores(m: usize, n: usize) -> Vec<f32> {
         (0..m * n).map(|i| ((i * 7919 % 113) as f32 / 113.0 - 0.5) * 6.0).collect()
