@@ -31,6 +31,7 @@ pub mod pooling;
 pub mod sinkhorn;
 pub mod wave_pe;
 pub mod weights;
+pub mod xfeat;
 
 /// Re-exported so that users of the geometry API name the same matrix types.
 pub use nalgebra;
@@ -41,6 +42,7 @@ pub use flops::{flops, Flops};
 pub use matcher::{MatchOptions, MatchOutput, Matcher, Profile};
 pub use sinkhorn::Matrix;
 pub use weights::Weights;
+pub use xfeat::{GrayImage, XFeat, XFeatConfig};
 
 /// The crate version.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
