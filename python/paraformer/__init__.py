@@ -14,10 +14,14 @@ from typing import Any, Mapping, Sequence, Union
 import numpy as np
 
 from ._paraformer import ParaformerError, WeightsError, _Matcher, __version__
+from ._paraformer import extract as _extract
+from ._paraformer import extract_file as _extract_file
 from ._paraformer import flops as _flops
+from ._paraformer import pretrained_names
 from . import features, geometry
 
-__all__ = ["Matcher", "ParaformerError", "WeightsError", "features", "flops", "geometry", "__version__"]
+__all__ = ["Matcher", "ParaformerError", "WeightsError", "extract", "features", "flops", "geometry",
+           "pretrained_names", "__version__"]
 
 ArrayLike = Any
 Output = dict[str, np.ndarray]
@@ -140,6 +144,21 @@ class Matcher:
         return m
 
     @classmethod
+    def pretrained(cls, name: str = "paraformer-xfeat") -> "Matcher":
+        """Trained weights shipped inside the package (for XFeat features).
+
+        Args:
+            name: one of ``paraformer.pretrained_names()``.
+        Returns:
+            The matcher.
+        """
+        if not isinstance(name, str):
+            raise ValueError(f"name: expected a str, got {type(name).__name__}")
+        m = cls.__new__(cls)
+        m._set(_Matcher.pretrained(name))
+        return m
+
+    @classmethod
     def from_bytes(cls, data: bytes) -> "Matcher":
         """Like ``from_file``, from the bytes of a weights file."""
         m = cls.__new__(cls)
@@ -227,6 +246,43 @@ class Matcher:
             raise ValueError(f"num_threads: expected a positive int, got {num_threads}")
         raw = self._inner.match_many(packed, bool(return_log_assignment), num_threads)
         return [_unpack(r) for r in raw]
+
+
+def extract(image: Union[str, os.PathLike, ArrayLike], max_keypoints: int = 2048) -> dict[str, np.ndarray]:
+    """XFeat keypoints and 64-d descriptors of one image (the Rust port of XFeat's sparse
+    ``detectAndCompute``), as the dict that ``Matcher.match_dicts`` takes.
+
+    Args:
+        image: a path (PNG, JPEG, PNM, BMP, TIFF, WebP) or a numpy array ``[H, W]`` or
+            ``[H, W, C]`` (C = 1, 2, 3 or 4; uint8 0–255 or float 0–255; colour is averaged
+            over R, G, B, alpha ignored).
+        max_keypoints: keep at most this many keypoints, best score first.
+    Returns:
+        ``keypoints`` ``[K, 2]`` float32 (x, y), ``scores`` ``[K]``, ``descriptors``
+        ``[K, 64]`` (unit length) and ``image_size`` ``(width, height)``.
+    """
+    if not isinstance(max_keypoints, (int, np.integer)) or isinstance(max_keypoints, bool) or max_keypoints < 1:
+        raise ValueError(f"max_keypoints: expected a positive int, got {max_keypoints!r}")
+    if isinstance(image, (str, os.PathLike)):
+        raw = _extract_file(os.fspath(image), int(max_keypoints))
+    else:
+        arr = np.asarray(image)
+        if arr.dtype == np.bool_ or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+            raise ValueError(f"image: expected a uint8 or float array [H, W] or [H, W, C], got dtype {arr.dtype}")
+        if arr.ndim == 2:
+            arr = arr[:, :, None]
+        if arr.ndim != 3 or arr.shape[2] not in (1, 2, 3, 4):
+            raise ValueError(f"image: expected shape [H, W] or [H, W, C] with C in 1..4, got {list(np.shape(image))}")
+        _check_finite(arr.astype(np.float32, copy=False), "image")
+        h, w, c = arr.shape
+        raw = _extract(_le32(arr), h, w, c, int(max_keypoints))
+    kpts, scores, desc, width, height = raw
+    return {
+        "keypoints": np.frombuffer(kpts, "<f4").reshape(-1, 2).astype(np.float32),
+        "scores": np.frombuffer(scores, "<f4").astype(np.float32),
+        "descriptors": np.frombuffer(desc, "<f4").reshape(-1, 64).astype(np.float32),
+        "image_size": np.array([width, height], np.float32),
+    }
 
 
 def flops(config_or_matcher: Union[Matcher, Mapping[str, Any]], m: int, n: int) -> int:

@@ -11,7 +11,7 @@ use paraformer::features::f32_from_le;
 use paraformer::eval::{ground_truth, metrics};
 use paraformer::geometry::{epipolar, homography, NoModel, RansacConfig, RansacResult};
 use paraformer::nalgebra::Matrix3;
-use paraformer::{Config, Error, Features, MatchOptions, MatchOutput, Matcher, Weights};
+use paraformer::{Config, Error, Features, GrayImage, MatchOptions, MatchOutput, Matcher, Weights, XFeat};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyValueError};
 use pyo3::prelude::*;
@@ -104,6 +104,19 @@ impl PyMatcher {
     #[pyo3(signature = (path, /))]
     fn from_file(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
         let m = py.detach(|| Matcher::from_file(&path)).map_err(to_py_err)?;
+        Ok(Self { inner: Arc::new(m) })
+    }
+
+    /// Loads trained weights shipped inside the package, by name.
+    ///
+    /// Args:
+    ///     name: one of `pretrained_names()`, e.g. "paraformer-xfeat".
+    /// Returns:
+    ///     The matcher.
+    #[staticmethod]
+    #[pyo3(signature = (name, /))]
+    fn pretrained(py: Python<'_>, name: &str) -> PyResult<Self> {
+        let m = py.detach(|| Matcher::pretrained(name)).map_err(to_py_err)?;
         Ok(Self { inner: Arc::new(m) })
     }
 
@@ -483,6 +496,72 @@ fn match_baseline(desc0: PyBackedBytes, desc1: PyBackedBytes, dim: usize, method
     Ok(baselines::match_descriptors(&f32_from_le(&desc0), &f32_from_le(&desc1), dim, m))
 }
 
+/// Names accepted by `_Matcher.pretrained`.
+///
+/// Returns:
+///     The list of shipped weight names.
+#[pyfunction]
+#[pyo3(signature = ())]
+fn pretrained_names() -> Vec<&'static str> {
+    paraformer::matcher::PRETRAINED.iter().map(|p| p.0).collect()
+}
+
+/// The embedded XFeat network, loaded on first use.
+fn xfeat() -> PyResult<&'static XFeat> {
+    static XFEAT: std::sync::OnceLock<XFeat> = std::sync::OnceLock::new();
+    if let Some(x) = XFEAT.get() {
+        return Ok(x);
+    }
+    let x = XFeat::pretrained().map_err(to_py_err)?;
+    Ok(XFEAT.get_or_init(|| x))
+}
+
+/// XFeat output as `(kpts_f32le, scores_f32le, desc_f32le, width, height)`.
+type Extracted = (Vec<u8>, Vec<u8>, Vec<u8>, f32, f32);
+
+fn extracted(f: Features) -> Extracted {
+    let le = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let kpts: Vec<f32> = f.keypoints.iter().flatten().copied().collect();
+    (le(&kpts), le(&f.scores), le(&f.descriptors), f.image_size.0, f.image_size.1)
+}
+
+/// XFeat keypoints and descriptors of an image given as pixels.
+///
+/// Args:
+///     pixels: `[H, W, C]` float32 little-endian bytes, values 0–255.
+///     height: H.
+///     width: W.
+///     channels: C (1 grey, 2 grey + alpha, 3 RGB, 4 RGBA).
+///     top_k: keep at most this many keypoints (best score first).
+/// Returns:
+///     `(kpts, scores, desc, width, height)`: float32 little-endian bytes `[K, 2]`, `[K]`,
+///     `[K, 64]` and the image size.
+#[pyfunction]
+#[pyo3(signature = (pixels, height, width, channels, top_k))]
+fn extract(py: Python<'_>, pixels: PyBackedBytes, height: usize, width: usize, channels: usize, top_k: usize) -> PyResult<Extracted> {
+    let xf = xfeat()?;
+    py.detach(|| {
+        let img = GrayImage::from_channels(width, height, channels, &f32_from_le(&pixels))?;
+        xf.detect_and_compute(&img, Some(top_k))
+    })
+    .map(extracted)
+    .map_err(to_py_err)
+}
+
+/// XFeat keypoints and descriptors of an image file (PNG, JPEG, PNM, BMP, TIFF, WebP).
+///
+/// Args:
+///     path: the image file.
+///     top_k: keep at most this many keypoints (best score first).
+/// Returns:
+///     `(kpts, scores, desc, width, height)` as for `extract`.
+#[pyfunction]
+#[pyo3(signature = (path, top_k))]
+fn extract_file(py: Python<'_>, path: PathBuf, top_k: usize) -> PyResult<Extracted> {
+    let xf = xfeat()?;
+    py.detach(|| xf.detect_and_compute(&GrayImage::open(&path)?, Some(top_k))).map(extracted).map_err(to_py_err)
+}
+
 /// Multiply-accumulates of one forward pass (SPEC §10).
 ///
 /// Args:
@@ -513,6 +592,9 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(homography_corner_error, m)?,
         wrap_pyfunction!(gt_matches_from_homography, m)?,
         wrap_pyfunction!(match_baseline, m)?,
+        wrap_pyfunction!(pretrained_names, m)?,
+        wrap_pyfunction!(extract, m)?,
+        wrap_pyfunction!(extract_file, m)?,
     ] {
         m.add_function(f)?;
     }

@@ -6,8 +6,8 @@ use std::path::PathBuf;
 /// Everything that can go wrong when loading weights or matching.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// The weights file could not be read from disk.
-    #[error("cannot read weights file {}: {source}", path.display())]
+    /// A file (weights, image, dataset) could not be read from disk.
+    #[error("cannot read {}: {source}", path.display())]
     Io {
         path: PathBuf,
         #[source]

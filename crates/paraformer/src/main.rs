@@ -60,6 +60,34 @@ enum Command {
         #[arg(long, default_value_t = 0.5)]
         difficulty: f64,
     },
+    /// Match two images end to end: XFeat keypoints and descriptors, a matcher, a robust
+    /// geometric model; prints counts, the model and a timing breakdown.
+    Match {
+        image0: PathBuf,
+        image1: PathBuf,
+        /// nn, mnn, ratio, ratio:R or a pretrained name (default: the shipped
+        /// ParaFormer weights when present, else mnn).
+        #[arg(long, conflicts_with = "weights")]
+        matcher: Option<String>,
+        /// A weights file (safetensors with `paraformer.config` metadata) instead of --matcher.
+        #[arg(long)]
+        weights: Option<PathBuf>,
+        /// Keypoints kept per image (best XFeat scores first).
+        #[arg(long, default_value_t = 2048)]
+        max_keypoints: usize,
+        /// Model fitted by RANSAC: homography or fundamental.
+        #[arg(long, default_value = "homography")]
+        geometry: String,
+        /// RANSAC threshold in pixels.
+        #[arg(long, default_value_t = 3.0)]
+        threshold: f64,
+        /// Write the side-by-side picture (inliers green, outliers red) to this PNG.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write keypoint counts, matches, inliers, the model and timings as JSON.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
     /// Draw the matches of one pair side by side (inliers green, outliers red) into a PNG.
     Draw {
         image0: PathBuf,
@@ -210,22 +238,13 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             let pairs: Vec<(usize, usize)> = m0.iter().enumerate().filter_map(|(i, &j)| usize::try_from(j).ok().map(|j| (i, j))).collect();
             let pt = |p: [f32; 2]| [p[0] as f64, p[1] as f64];
             let (x0, x1): (Vec<_>, Vec<_>) = pairs.iter().map(|&(i, j)| (pt(f0.keypoints[i]), pt(f1.keypoints[j]))).unzip();
-            let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
-            let fit = match geometry.as_str() {
-                "homography" => paraformer::geometry::homography::find_homography(&x0, &x1, &cfg).map(|r| (r.inliers, format!("{:.4}", r.model))),
-                "fundamental" => paraformer::geometry::epipolar::find_fundamental(&x0, &x1, &cfg).map(|r| (r.inliers, format!("{:.4e}", r.model))),
-                other => return Err(paraformer::Error::InvalidInput { argument: "geometry".into(), reason: format!("expected homography or fundamental, got {other}") }),
-            };
-            let (inliers, model) = match fit {
-                Ok((mask, model)) => (mask, model),
-                Err(e) => (vec![false; x0.len()], format!("no model: {e}")),
-            };
-            let load = |p: &PathBuf| image::open(p).map(|i| i.to_rgb8()).map_err(|e| paraformer::Error::InvalidInput { argument: p.display().to_string(), reason: e.to_string() });
-            let lines: Vec<_> = x0.iter().zip(&x1).zip(&inliers).map(|((a, b), &i)| (*a, *b, i)).collect();
-            let canvas = paraformer::eval::draw::draw_matches(&load(&image0)?, &load(&image1)?, &lines);
-            canvas.save(&out).map_err(|e| paraformer::Error::InvalidInput { argument: out.display().to_string(), reason: e.to_string() })?;
-            println!("{} × {} keypoints, {} matches ({}), {} inliers ({geometry}); model:{model}", f0.len(), f1.len(), x0.len(), spec.name(), inliers.iter().filter(|&&b| b).count());
+            let fit = fit_model(&geometry, &x0, &x1, threshold)?;
+            draw(&image0, &image1, &x0, &x1, &fit.inliers, &out)?;
+            println!("{} × {} keypoints, {} matches ({}), {} inliers ({geometry}); model:{}", f0.len(), f1.len(), x0.len(), spec.name(), fit.count(), fit.text);
             println!("wrote {}", out.display());
+        }
+        Command::Match { image0, image1, matcher, weights, max_keypoints, geometry, threshold, out, json } => {
+            match_images(MatchArgs { image0, image1, matcher, weights, max_keypoints, geometry, threshold, out, json })?
         }
         Command::Inspect { weights } => {
             let w = Weights::from_file(&weights)?;
@@ -233,6 +252,151 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             println!("{}", matcher.config().to_json());
             println!("{} tensors, all present with the expected shapes", w.names().count());
         }
+    }
+    Ok(())
+}
+
+fn input_error(argument: impl Into<String>, reason: impl ToString) -> paraformer::Error {
+    paraformer::Error::InvalidInput { argument: argument.into(), reason: reason.to_string() }
+}
+
+/// A robust fit: the inlier mask and the model as text and JSON (`None` when RANSAC
+/// found no model, which is reported, not an error).
+struct Fit {
+    inliers: Vec<bool>,
+    text: String,
+    model: Option<Vec<Vec<f64>>>,
+}
+
+impl Fit {
+    fn count(&self) -> usize {
+        self.inliers.iter().filter(|&&b| b).count()
+    }
+}
+
+fn fit_model(geometry: &str, x0: &[[f64; 2]], x1: &[[f64; 2]], threshold: f64) -> paraformer::Result<Fit> {
+    use paraformer::geometry::{epipolar, homography, RansacConfig};
+    let cfg = RansacConfig { threshold, ..Default::default() };
+    let rows = |m: &paraformer::nalgebra::Matrix3<f64>| (0..3).map(|r| (0..3).map(|c| m[(r, c)]).collect()).collect();
+    let text = |m: &Vec<Vec<f64>>, sci: bool| {
+        let row = |r: &Vec<f64>| r.iter().map(|v| if sci { format!("{v:.4e}") } else { format!("{v:.4}") }).collect::<Vec<_>>().join(", ");
+        format!(" [{}]", m.iter().map(row).collect::<Vec<_>>().join("; "))
+    };
+    let fit = match geometry {
+        "homography" => homography::find_homography(x0, x1, &cfg).map(|r| {
+            let m: Vec<Vec<f64>> = rows(&(r.model / r.model[(2, 2)]));
+            (r.inliers, text(&m, false), m)
+        }),
+        "fundamental" => epipolar::find_fundamental(x0, x1, &cfg).map(|r| {
+            let m: Vec<Vec<f64>> = rows(&r.model);
+            (r.inliers, text(&m, true), m)
+        }),
+        other => return Err(input_error("geometry", format!("expected homography or fundamental, got {other}"))),
+    };
+    Ok(match fit {
+        Ok((inliers, text, model)) => Fit { inliers, text, model: Some(model) },
+        Err(e) => Fit { inliers: vec![false; x0.len()], text: format!(" no model: {e}"), model: None },
+    })
+}
+
+fn draw(image0: &PathBuf, image1: &PathBuf, x0: &[[f64; 2]], x1: &[[f64; 2]], inliers: &[bool], out: &PathBuf) -> paraformer::Result<()> {
+    let load = |p: &PathBuf| image::open(p).map(|i| i.to_rgb8()).map_err(|e| input_error(p.display().to_string(), e));
+    let lines: Vec<_> = x0.iter().zip(x1).zip(inliers).map(|((a, b), &i)| (*a, *b, i)).collect();
+    let canvas = paraformer::eval::draw::draw_matches(&load(image0)?, &load(image1)?, &lines);
+    canvas.save(out).map_err(|e| input_error(out.display().to_string(), e))
+}
+
+struct MatchArgs {
+    image0: PathBuf,
+    image1: PathBuf,
+    matcher: Option<String>,
+    weights: Option<PathBuf>,
+    max_keypoints: usize,
+    geometry: String,
+    threshold: f64,
+    out: Option<PathBuf>,
+    json: Option<PathBuf>,
+}
+
+/// The default matcher of `paraformer match`: the shipped ParaFormer when present.
+fn default_matcher() -> String {
+    let shipped = paraformer::matcher::PRETRAINED.iter().find(|p| p.0 == "paraformer-xfeat");
+    shipped.map_or("mnn", |p| p.0).to_string()
+}
+
+fn match_images(a: MatchArgs) -> paraformer::Result<()> {
+    use paraformer::eval::harness::MatcherSpec;
+    use paraformer::{GrayImage, XFeat};
+    use std::time::Instant;
+    let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+    if a.max_keypoints == 0 {
+        return Err(input_error("--max-keypoints", "must be at least 1"));
+    }
+    let total = Instant::now();
+    let t = Instant::now();
+    let spec = match (&a.weights, &a.matcher) {
+        (Some(w), _) => {
+            let name = w.file_stem().map_or("weights".into(), |s| s.to_string_lossy().into_owned());
+            MatcherSpec::Learned(name, Box::new(paraformer::Matcher::from_file(w)?))
+        }
+        (None, Some(m)) => MatcherSpec::parse(m)?,
+        (None, None) => MatcherSpec::parse(&default_matcher())?,
+    };
+    let xfeat = XFeat::pretrained()?;
+    let t_load = ms(t);
+    let t = Instant::now();
+    let (img0, img1) = (GrayImage::open(&a.image0)?, GrayImage::open(&a.image1)?);
+    let t_decode = ms(t);
+    let t = Instant::now();
+    let f0 = xfeat.detect_and_compute(&img0, Some(a.max_keypoints))?;
+    let t_extract0 = ms(t);
+    let t = Instant::now();
+    let f1 = xfeat.detect_and_compute(&img1, Some(a.max_keypoints))?;
+    let t_extract1 = ms(t);
+    let t = Instant::now();
+    let m0 = spec.matches(&f0, &f1)?;
+    let t_match = ms(t);
+    let pairs: Vec<(usize, usize)> = m0.iter().enumerate().filter_map(|(i, &j)| usize::try_from(j).ok().map(|j| (i, j))).collect();
+    let pt = |p: [f32; 2]| [p[0] as f64, p[1] as f64];
+    let (x0, x1): (Vec<_>, Vec<_>) = pairs.iter().map(|&(i, j)| (pt(f0.keypoints[i]), pt(f1.keypoints[j]))).unzip();
+    let t = Instant::now();
+    let fit = fit_model(&a.geometry, &x0, &x1, a.threshold)?;
+    let t_geometry = ms(t);
+    let t = Instant::now();
+    if let Some(out) = &a.out {
+        draw(&a.image0, &a.image1, &x0, &x1, &fit.inliers, out)?;
+    }
+    let t_draw = ms(t);
+    let inliers = fit.count();
+    println!("image0   {} ({}×{}): {} keypoints", a.image0.display(), img0.width, img0.height, f0.len());
+    println!("image1   {} ({}×{}): {} keypoints", a.image1.display(), img1.width, img1.height, f1.len());
+    println!("matcher  {}: {} matches", spec.name(), pairs.len());
+    let share = if pairs.is_empty() { 0.0 } else { 100.0 * inliers as f64 / pairs.len() as f64 };
+    println!("{:<8} {inliers} inliers ({share:.1}%) at {} px; model:{}", a.geometry, a.threshold, fit.text);
+    println!(
+        "time     load {t_load:.1} ms, decode {t_decode:.1} ms, extract {t_extract0:.1} + {t_extract1:.1} ms, match {t_match:.1} ms, geometry {t_geometry:.1} ms, draw {t_draw:.1} ms, total {:.1} ms ({} threads)",
+        ms(total),
+        rayon_threads()
+    );
+    if let Some(out) = &a.out {
+        println!("wrote {}", out.display());
+    }
+    if let Some(path) = &a.json {
+        let value = serde_json::json!({
+            "image0": a.image0, "image1": a.image1,
+            "keypoints0": f0.len(), "keypoints1": f1.len(),
+            "matcher": spec.name(),
+            "matches": pairs.iter().map(|&(i, j)| [i, j]).collect::<Vec<_>>(),
+            "points0": x0, "points1": x1,
+            "inliers": fit.inliers,
+            "num_inliers": inliers,
+            "geometry": a.geometry,
+            "model": fit.model,
+            "timings_ms": {"load": t_load, "decode": t_decode, "extract0": t_extract0, "extract1": t_extract1, "match": t_match, "geometry": t_geometry, "draw": t_draw, "total": ms(total)},
+        });
+        let text = serde_json::to_string_pretty(&value).map_err(|e| input_error("--json", e))?;
+        std::fs::write(path, text).map_err(|source| paraformer::Error::Io { path: path.clone(), source })?;
+        println!("wrote {}", path.display());
     }
     Ok(())
 }

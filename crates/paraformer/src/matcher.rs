@@ -230,6 +230,10 @@ impl MatchOutput {
     }
 }
 
+/// Trained weights embedded in the crate, by name (training/README.md tells how they
+/// were made; `Matcher::pretrained` loads them).
+pub const PRETRAINED: &[(&str, &[u8])] = &[];
+
 /// A loaded matcher (SuperGlue, ParaFormer or ParaFormer-U). `Send + Sync`: share it
 /// between threads freely.
 #[derive(Debug, Clone)]
@@ -247,6 +251,21 @@ impl Matcher {
     /// Loads safetensors bytes whose metadata holds the config.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self> {
         Self::from_weights(&Weights::from_bytes(bytes)?)
+    }
+
+    /// Embedded trained weights by name (see [`PRETRAINED`]); an unknown name is an
+    /// error listing the known ones.
+    pub fn pretrained(name: &str) -> Result<Self> {
+        match PRETRAINED.iter().find(|(n, _)| *n == name) {
+            Some((_, bytes)) => Self::from_bytes(bytes),
+            None => Err(Error::input(
+                "name",
+                format!(
+                    "no pretrained matcher `{name}`; available: {}",
+                    if PRETRAINED.is_empty() { "none".to_string() } else { PRETRAINED.iter().map(|p| p.0).collect::<Vec<_>>().join(", ") }
+                ),
+            )),
+        }
     }
 
     /// Uses the config stored in the weights' metadata.

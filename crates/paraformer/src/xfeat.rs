@@ -61,6 +61,26 @@ impl GrayImage {
         Ok(Self { width, height, data })
     }
 
+    /// An image from interleaved pixels with 1 (grey), 2 (grey + alpha), 3 (RGB) or 4
+    /// (RGBA) channels; colour becomes the mean of R, G, B as in XFeat.
+    pub fn from_channels(width: usize, height: usize, channels: usize, data: &[f32]) -> Result<Self> {
+        if !(1..=4).contains(&channels) {
+            return Err(Error::input("image", format!("{channels} channels; expected 1, 2, 3 or 4")));
+        }
+        if data.len() != width * height * channels {
+            return Err(Error::input(
+                "image",
+                format!("{} values for a {width}×{height}×{channels} image (expected {})", data.len(), width * height * channels),
+            ));
+        }
+        let grey = match channels {
+            1 => data.to_vec(),
+            2 => data.chunks_exact(2).map(|p| p[0]).collect(),
+            c => data.chunks_exact(c).map(|p| (p[0] + p[1] + p[2]) / 3.0).collect(),
+        };
+        Self::new(width, height, grey)
+    }
+
     /// Converts any decoded image: grey stays grey, colour is the mean of R, G, B
     /// (alpha ignored); 16-bit and float images are scaled to 0–255.
     pub fn from_dynamic(img: &image::DynamicImage) -> Self {

@@ -338,3 +338,42 @@ fn matcher_is_send_sync_and_threads_agree() {
         }
     });
 }
+
+// ---- XFeat: images and weights ---------------------------------------------------
+
+#[test]
+fn xfeat_rejects_bad_images_with_named_errors() {
+    use paraformer::{GrayImage, XFeat};
+    let xf = XFeat::pretrained().expect("embedded weights");
+    let msg = |e: paraformer::Error| e.to_string();
+    assert!(msg(GrayImage::new(40, 40, vec![0.0; 10]).expect_err("short")).contains("40×40"));
+    assert!(msg(GrayImage::from_channels(40, 40, 5, &[0.0; 8000]).expect_err("channels")).contains("5 channels"));
+    assert!(msg(GrayImage::from_channels(40, 40, 3, &[0.0; 100]).expect_err("short rgb")).contains("40×40×3"));
+    let mut nan = GrayImage::new(64, 64, vec![10.0; 64 * 64]).expect("image");
+    nan.data[70] = f32::NAN;
+    assert!(msg(xf.detect_and_compute(&nan, None).expect_err("NaN")).contains("non-finite pixel value at index 70"));
+    let tiny = GrayImage::new(31, 200, vec![0.0; 31 * 200]).expect("image");
+    assert!(msg(xf.detect_and_compute(&tiny, None).expect_err("tiny")).contains("at least 32×32"));
+    // A flat image has no keypoints: an empty, well-formed result.
+    let flat = GrayImage::new(64, 64, vec![100.0; 64 * 64]).expect("image");
+    let f = xf.detect_and_compute(&flat, None).expect("flat image");
+    assert_eq!((f.len(), f.descriptors.len(), f.descriptor_dim), (f.scores.len(), 64 * f.len(), 64));
+    assert!(GrayImage::from_encoded(b"not an image").is_err());
+    let missing = GrayImage::open("/no/such/image.png").expect_err("missing");
+    assert!(matches!(missing, paraformer::Error::Io { .. }), "{missing}");
+}
+
+#[test]
+fn xfeat_weights_truncated_or_mismatched_are_errors() {
+    use paraformer::xfeat::XFEAT_WEIGHTS;
+    use paraformer::XFeat;
+    for cut in [0, 7, 100, XFEAT_WEIGHTS.len() / 2, XFEAT_WEIGHTS.len() - 1] {
+        let err = XFeat::from_bytes(&XFEAT_WEIGHTS[..cut]).expect_err("truncated");
+        assert!(matches!(err, paraformer::Error::WeightsFormat(_)), "cut {cut}: {err}");
+    }
+    // ParaFormer weights are not XFeat weights: every XFeat tensor is reported missing.
+    let other = std::fs::read(common::data_dir().join("spec_vectors/paraformer.weights.safetensors")).expect("fixture");
+    let err = XFeat::from_bytes(&other).expect_err("mismatched").to_string();
+    assert!(err.contains("block1.0.layer.0.weight") && err.contains("missing"), "{err}");
+    assert!(err.contains("unexpected"), "{err}");
+}

@@ -49,3 +49,68 @@ fn errors_are_one_line_with_a_non_zero_exit() {
         assert!(err.starts_with("error: "), "{err}");
     }
 }
+
+fn sample(name: &str) -> String {
+    format!("{}/../../assets/sample/{name}", env!("CARGO_MANIFEST_DIR"))
+}
+
+#[test]
+fn match_on_the_sample_pair_recovers_its_homography() {
+    let dir = std::env::temp_dir().join(format!("paraformer-cli-match-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("tmp dir");
+    let (png, json) = (dir.join("m.png"), dir.join("m.json"));
+    let (ok, out, err) = run(&[
+        "match",
+        &sample("coffee_0.jpg"),
+        &sample("coffee_1.jpg"),
+        "--matcher",
+        "mnn",
+        "--max-keypoints",
+        "512",
+        "--out",
+        png.to_str().expect("utf-8 path"),
+        "--json",
+        json.to_str().expect("utf-8 path"),
+    ]);
+    assert!(ok, "{err}");
+    for needle in ["512 keypoints", "mutual NN", "inliers", "extract", "wrote"] {
+        assert!(out.contains(needle), "missing {needle:?} in {out}");
+    }
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).expect("json written")).expect("valid json");
+    assert_eq!(v["keypoints0"], 512);
+    // The estimated homography maps the image centre within 2 px of the true one.
+    let truth: Vec<f64> = std::fs::read_to_string(sample("H_0to1.txt"))
+        .expect("H")
+        .split_whitespace()
+        .map(|t| t.parse().expect("number"))
+        .collect();
+    let est: Vec<f64> = v["model"].as_array().expect("model").iter().flat_map(|r| r.as_array().expect("row").iter().map(|x| x.as_f64().expect("f64"))).collect();
+    let apply = |h: &[f64], x: f64, y: f64| {
+        let w = h[6] * x + h[7] * y + h[8];
+        ((h[0] * x + h[1] * y + h[2]) / w, (h[3] * x + h[4] * y + h[5]) / w)
+    };
+    let (a, b) = (apply(&truth, 300.0, 200.0), apply(&est, 300.0, 200.0));
+    assert!((a.0 - b.0).hypot(a.1 - b.1) < 2.0, "{a:?} vs {b:?}");
+    assert!(v["num_inliers"].as_u64().expect("count") > 100);
+    assert!(image::open(&png).is_ok());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn match_errors_are_one_line() {
+    let readme = format!("{}/../../README.md", env!("CARGO_MANIFEST_DIR"));
+    let (s0, s1) = (sample("coffee_0.jpg"), sample("coffee_1.jpg"));
+    for (args, needle) in [
+        (vec!["match", s0.as_str(), "/no/such.jpg"], "/no/such.jpg"),
+        (vec!["match", s0.as_str(), readme.as_str()], "unreadable image"),
+        (vec!["match", s0.as_str(), s1.as_str(), "--weights", readme.as_str()], "safetensors"),
+        (vec!["match", s0.as_str(), s1.as_str(), "--matcher", "nonsense"], "not nn, mnn"),
+        (vec!["match", s0.as_str(), s1.as_str(), "--geometry", "affine"], "geometry"),
+        (vec!["match", s0.as_str(), s1.as_str(), "--max-keypoints", "0"], "max-keypoints"),
+    ] {
+        let (ok, out, err) = run(&args);
+        assert!(!ok, "{args:?} succeeded: {out}");
+        assert_eq!(err.trim().lines().count(), 1, "{args:?}: {err}");
+        assert!(err.starts_with("error: ") && err.contains(needle), "{args:?}: {err}");
+    }
+}

@@ -1,15 +1,28 @@
 //! Descriptor-matching baselines on the same features: nearest neighbour, mutual
 //! nearest neighbour, and Lowe's ratio test (Euclidean descriptor distance).
 
-/// Squared Euclidean distances `[M, N]` between rows of `d0` `[M, D]` and `d1` `[N, D]`.
+use crate::kernels::{Ctx, View};
+
+/// Squared Euclidean distances `[M, N]` between rows of `d0` `[M, D]` and `d1` `[N, D]`,
+/// as `|a|² + |b|² − 2·a·b` with one GEMM (clamped at 0 against rounding).
 fn distances(d0: &[f32], d1: &[f32], dim: usize) -> Vec<f32> {
     let (m, n) = (d0.len() / dim.max(1), d1.len() / dim.max(1));
     let mut out = vec![0.0f32; m * n];
-    for i in 0..m {
-        let a = &d0[i * dim..(i + 1) * dim];
-        for j in 0..n {
-            let b = &d1[j * dim..(j + 1) * dim];
-            out[i * n + j] = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+    let sq = |d: &[f32]| d.chunks_exact(dim.max(1)).map(|r| r.iter().map(|v| v * v).sum::<f32>()).collect::<Vec<f32>>();
+    let (s0, s1) = (sq(d0), sq(d1));
+    let a = View { data: d0, rows: m, cols: dim, stride: dim };
+    let b = View { data: d1, rows: n, cols: dim, stride: dim };
+    if Ctx::default().gemm(&mut out, n, a, false, b, true, -2.0, false, true).is_err() {
+        // Unreachable with consistent shapes; keep an exact fallback rather than panic.
+        for i in 0..m {
+            for j in 0..n {
+                out[i * n + j] = -2.0 * d0[i * dim..(i + 1) * dim].iter().zip(&d1[j * dim..(j + 1) * dim]).map(|(x, y)| x * y).sum::<f32>();
+            }
+        }
+    }
+    for (row, a2) in out.chunks_exact_mut(n.max(1)).zip(&s0) {
+        for (v, b2) in row.iter_mut().zip(&s1) {
+            *v = (*v + a2 + b2).max(0.0);
         }
     }
     out
@@ -48,9 +61,16 @@ pub fn match_descriptors(d0: &[f32], d1: &[f32], dim: usize, method: Baseline) -
     match method {
         Baseline::NearestNeighbour => nn0.iter().map(|&(j, _, _)| j as i64).collect(),
         Baseline::MutualNearestNeighbour => {
-            let nn1: Vec<usize> = (0..n)
-                .map(|j| (0..m).min_by(|&a, &b| dist[a * n + j].total_cmp(&dist[b * n + j])).unwrap_or(0))
-                .collect();
+            // Column minima in one row-major pass (first index wins ties, like argmin).
+            let mut nn1 = vec![(f32::INFINITY, 0usize); n];
+            for (i, row) in dist.chunks_exact(n).enumerate() {
+                for (best, &d) in nn1.iter_mut().zip(row) {
+                    if d < best.0 {
+                        *best = (d, i);
+                    }
+                }
+            }
+            let nn1: Vec<usize> = nn1.into_iter().map(|b| b.1).collect();
             nn0.iter().enumerate().map(|(i, &(j, _, _))| if nn1[j] == i { j as i64 } else { -1 }).collect()
         }
         Baseline::RatioTest { ratio } => nn0

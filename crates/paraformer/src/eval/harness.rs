@@ -24,7 +24,8 @@ pub enum MatcherSpec {
 }
 
 impl MatcherSpec {
-    /// `nn`, `mnn`, `ratio` (0.8) or `ratio:R`, or the path of a weights file.
+    /// `nn`, `mnn`, `ratio` (0.8) or `ratio:R`, a pretrained name
+    /// ([`crate::matcher::PRETRAINED`]), or the path of a weights file.
     pub fn parse(spec: &str) -> Result<Self> {
         Ok(match spec {
             "nn" => Self::Baseline("NN".into(), Baseline::NearestNeighbour),
@@ -32,6 +33,19 @@ impl MatcherSpec {
             s if s == "ratio" || s.starts_with("ratio:") => {
                 let ratio = s.strip_prefix("ratio:").map_or(Ok(0.8), str::parse::<f32>).map_err(|e| Error::input("matcher", e.to_string()))?;
                 Self::Baseline(format!("ratio test {ratio}"), Baseline::RatioTest { ratio })
+            }
+            name if crate::matcher::PRETRAINED.iter().any(|p| p.0 == name) => {
+                Self::Learned(name.to_string(), Box::new(Matcher::pretrained(name)?))
+            }
+            path if !Path::new(path).exists() => {
+                let names: Vec<&str> = crate::matcher::PRETRAINED.iter().map(|p| p.0).collect();
+                return Err(Error::input(
+                    "matcher",
+                    format!(
+                        "`{path}` is not nn, mnn, ratio, ratio:R, a pretrained name ({}) or an existing weights file",
+                        if names.is_empty() { "none shipped".to_string() } else { names.join(", ") }
+                    ),
+                ));
             }
             path => {
                 let m = Matcher::from_file(path)?;
