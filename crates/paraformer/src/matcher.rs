@@ -230,9 +230,11 @@ impl MatchOutput {
     }
 }
 
-/// Trained weights embedded in the crate, by name (training/README.md tells how they
-/// were made; `Matcher::pretrained` loads them).
-pub const PRETRAINED: &[(&str, &[u8])] = &[];
+/// Trained weights embedded in the crate, by name (`training/README.md` tells how they
+/// were made; [`Matcher::pretrained`] loads them). Both take XFeat features (64-d).
+pub const PRETRAINED: &[(&str, &[u8])] = &[
+    ("paraformer-xfeat", include_bytes!("../weights/paraformer-xfeat.safetensors")),
+];
 
 /// A loaded matcher (SuperGlue, ParaFormer or ParaFormer-U). `Send + Sync`: share it
 /// between threads freely.
