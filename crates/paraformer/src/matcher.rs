@@ -234,6 +234,7 @@ impl MatchOutput {
 /// were made; [`Matcher::pretrained`] loads them). Both take XFeat features (64-d).
 pub const PRETRAINED: &[(&str, &[u8])] = &[
     ("paraformer-xfeat", include_bytes!("../weights/paraformer-xfeat.safetensors")),
+    ("paraformer-u-xfeat", include_bytes!("../weights/paraformer-u-xfeat.safetensors")),
 ];
 
 /// A loaded matcher (SuperGlue, ParaFormer or ParaFormer-U). `Send + Sync`: share it

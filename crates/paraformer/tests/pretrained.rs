@@ -13,7 +13,7 @@ fn sample(name: &str) -> String {
 #[test]
 fn shipped_matchers_load_by_name_and_recover_the_sample_homography() {
     let names: Vec<&str> = paraformer::matcher::PRETRAINED.iter().map(|p| p.0).collect();
-    assert!(names.contains(&"paraformer-xfeat"), "{names:?}");
+    assert_eq!(names, ["paraformer-xfeat", "paraformer-u-xfeat"]);
     let xf = XFeat::pretrained().expect("XFeat");
     let f0 = xf.detect_and_compute(&GrayImage::open(sample("coffee_0.jpg")).expect("image"), Some(512)).expect("features");
     let f1 = xf.detect_and_compute(&GrayImage::open(sample("coffee_1.jpg")).expect("image"), Some(512)).expect("features");
