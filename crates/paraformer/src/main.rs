@@ -235,9 +235,7 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             let (f0, f1) = (get(name(&image0))?, get(name(&image1))?);
             let spec = MatcherSpec::parse(&matcher)?;
             let m0 = spec.matches(f0, f1)?;
-            let pairs: Vec<(usize, usize)> = m0.iter().enumerate().filter_map(|(i, &j)| usize::try_from(j).ok().map(|j| (i, j))).collect();
-            let pt = |p: [f32; 2]| [p[0] as f64, p[1] as f64];
-            let (x0, x1): (Vec<_>, Vec<_>) = pairs.iter().map(|&(i, j)| (pt(f0.keypoints[i]), pt(f1.keypoints[j]))).unzip();
+            let (x0, x1) = paraformer::eval::harness::correspondences(f0, f1, &m0);
             let fit = fit_model(&geometry, &x0, &x1, threshold)?;
             draw(&image0, &image1, &x0, &x1, &fit.inliers, &out)?;
             println!("{} × {} keypoints, {} matches ({}), {} inliers ({geometry}); model:{}", f0.len(), f1.len(), x0.len(), spec.name(), fit.count(), fit.text);
@@ -356,9 +354,7 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     let t = Instant::now();
     let m0 = spec.matches(&f0, &f1)?;
     let t_match = ms(t);
-    let pairs: Vec<(usize, usize)> = m0.iter().enumerate().filter_map(|(i, &j)| usize::try_from(j).ok().map(|j| (i, j))).collect();
-    let pt = |p: [f32; 2]| [p[0] as f64, p[1] as f64];
-    let (x0, x1): (Vec<_>, Vec<_>) = pairs.iter().map(|&(i, j)| (pt(f0.keypoints[i]), pt(f1.keypoints[j]))).unzip();
+    let (x0, x1) = paraformer::eval::harness::correspondences(&f0, &f1, &m0);
     let t = Instant::now();
     let fit = fit_model(&a.geometry, &x0, &x1, a.threshold)?;
     let t_geometry = ms(t);
@@ -370,8 +366,8 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     let inliers = fit.count();
     println!("image0   {} ({}×{}): {} keypoints", a.image0.display(), img0.width, img0.height, f0.len());
     println!("image1   {} ({}×{}): {} keypoints", a.image1.display(), img1.width, img1.height, f1.len());
-    println!("matcher  {}: {} matches", spec.name(), pairs.len());
-    let share = if pairs.is_empty() { 0.0 } else { 100.0 * inliers as f64 / pairs.len() as f64 };
+    println!("matcher  {}: {} matches", spec.name(), x0.len());
+    let share = if x0.is_empty() { 0.0 } else { 100.0 * inliers as f64 / x0.len() as f64 };
     println!("{:<8} {inliers} inliers ({share:.1}%) at {} px; model:{}", a.geometry, a.threshold, fit.text);
     println!(
         "time     load {t_load:.1} ms, decode {t_decode:.1} ms, extract {t_extract0:.1} + {t_extract1:.1} ms, match {t_match:.1} ms, geometry {t_geometry:.1} ms, draw {t_draw:.1} ms, total {:.1} ms ({} threads)",
@@ -386,7 +382,7 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
             "image0": a.image0, "image1": a.image1,
             "keypoints0": f0.len(), "keypoints1": f1.len(),
             "matcher": spec.name(),
-            "matches": pairs.iter().map(|&(i, j)| [i, j]).collect::<Vec<_>>(),
+            "matches": m0.iter().enumerate().filter(|(_, &j)| j >= 0).map(|(i, &j)| [i as i64, j]).collect::<Vec<_>>(),
             "points0": x0, "points1": x1,
             "inliers": fit.inliers,
             "num_inliers": inliers,

@@ -78,7 +78,8 @@ fn points(f: &Features) -> Vec<Point> {
     f.keypoints.iter().map(|p| [p[0] as f64, p[1] as f64]).collect()
 }
 
-fn correspondences(f0: &Features, f1: &Features, m0: &[i64]) -> (Vec<Point>, Vec<Point>) {
+/// The matched keypoint coordinates `(points0, points1)` of `matches0` (−1 skipped).
+pub fn correspondences(f0: &Features, f1: &Features, m0: &[i64]) -> (Vec<Point>, Vec<Point>) {
     m0.iter()
         .enumerate()
         .filter_map(|(i, &j)| usize::try_from(j).ok().map(|j| (i, j)))
