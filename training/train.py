@@ -1,18 +1,28 @@
-"""Trains one matcher (SuperGlue, parallel + MLP-PE, ParaFormer, ParaFormer-U) on cached
-XFeat pairs from `make_dataset.py`. Resumable: rerunning the same command continues from
-`<out>/last.pt`. Writes `<out>/log.jsonl` (loss, lr, validation precision/recall/F1) and
-`<out>/best.safetensors` (SPEC weights file of the best validation F1).
+"""Trains one matcher on the endless pair stream, resumably, for as many pairs as asked.
 
-    python training/train.py --preset paraformer --out training/runs/paraformer \
-        --data training/cache/train --val training/cache/holdout --steps 3000
+    python training/train.py --run training/checkpoints/paraformer-xfeat --preset paraformer \
+        --dim 64 --heads 1 --depth 4 --pairs 600000
+
+``--run`` (committed): ``config.json``, ``last.pt`` (weights, optimiser, counters, stream
+cursor; rewritten at least every ``--ckpt-minutes``) and ``log.jsonl`` (the learning
+curve). ``--work`` (not committed, default ``training/runs/<name>``): the pair pool, the
+generator's log and ``best.safetensors``; the holdout pairs live in ``training/cache/holdout``. Rerunning the same command,
+on this machine or a fresh clone, resumes from ``last.pt``: the generator restarts at the
+stream cursor and regenerates any shard that was not finished (pairs are seeded).
+
+Speed (see ``bench_step.py``): fused SDPA attention and gradients through the last
+Sinkhorn iteration only (the earlier ones in the scaling domain without autograd).
+Keypoint counts vary per step (``--keypoints``), with the batch shrunk so that each step
+costs about the same.
 """
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import math
 import os
+import signal
+import subprocess
 import sys
 import time
 
@@ -20,13 +30,17 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from paraformer_train import stream  # noqa: E402
 from paraformer_train.io import save_safetensors  # noqa: E402
-from paraformer_train.model import Matcher  # noqa: E402
+from paraformer_train.model import Matcher, extract_matches, log_optimal_transport, log_optimal_transport_last_grad  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed")
 
 
-def preset(name: str, dim: int, depth: int) -> dict:
-    """The four models of the comparison at one width and depth (Table 3 + the U variant)."""
-    common = {"descriptor_dim": 64, "num_heads": 4}
+def preset(name: str, dim: int, depth: int, heads: int) -> dict:
+    """The models at one width and depth (paper Table 3 + the U variant)."""
+    common = {"descriptor_dim": 64, "num_heads": heads}
     if name == "superglue":
         return common | {"model": "superglue", "dim": dim, "layer_names": ["self", "cross"] * depth}
     if name == "parallel_mlp":
@@ -40,46 +54,14 @@ def preset(name: str, dim: int, depth: int) -> dict:
     raise ValueError(f"unknown preset {name!r}")
 
 
-def load_shards(folder: str) -> dict[str, torch.Tensor]:
-    paths = sorted(glob.glob(os.path.join(folder, "shard_*.npz")))
-    if not paths:
-        raise FileNotFoundError(f"no shard_*.npz in {folder} (run training/make_dataset.py)")
-    parts = [dict(np.load(p)) for p in paths]
-    out = {k: torch.from_numpy(np.concatenate([p[k] for p in parts])) for k in parts[0]}
-    out["scores"] = out["scores"].float()
-    out["descriptors"] = out["descriptors"].float()
-    out["matches0"] = out["matches0"].long()
-    out["matches1"] = out["matches1"].long()
-    return out
-
-
-def batch(data: dict, idx: torch.Tensor, swap: torch.Tensor | None = None) -> dict:
-    """A model input dict for pairs `idx`; `swap[b]` exchanges the two views of pair b."""
-    k, s, d, sz = (data[n][idx] for n in ("keypoints", "scores", "descriptors", "image_size"))
-    m0, m1 = data["matches0"][idx], data["matches1"][idx]
-    if swap is not None:
-        flip = swap.view(-1, 1, 1, 1)
-        k = torch.where(flip, k.flip(1), k)
-        d = torch.where(flip, d.flip(1), d)
-        s = torch.where(swap.view(-1, 1, 1), s.flip(1), s)
-        sz = torch.where(swap.view(-1, 1, 1), sz.flip(1), sz)
-        m0, m1 = torch.where(swap.view(-1, 1), m1, m0), torch.where(swap.view(-1, 1), m0, m1)
-    return {
-        "keypoints0": k[:, 0], "keypoints1": k[:, 1], "scores0": s[:, 0], "scores1": s[:, 1],
-        "descriptors0": d[:, 0], "descriptors1": d[:, 1], "image_size0": sz[:, 0], "image_size1": sz[:, 1],
-        "gt0": m0, "gt1": m1,
-    }
-
-
 def nll_loss(logp: torch.Tensor, gt0: torch.Tensor, gt1: torch.Tensor) -> torch.Tensor:
     """Assignment NLL with dustbins: 0.5 · mean over positives + 0.5 · mean over unmatched
     keypoints of both images; ignored keypoints (−2) are left out."""
-    b, m1, n1 = logp.shape
+    b = logp.shape[0]
     pos = gt0 >= 0
-    pos_ll = logp[:, :-1, :][torch.arange(b)[:, None].expand_as(gt0)[pos], torch.nonzero(pos)[:, 1], gt0[pos]]
-    un0 = logp[:, :-1, -1][gt0 == -1]
-    un1 = logp[:, -1, :-1][gt1 == -1]
-    neg_ll = torch.cat([un0, un1])
+    bi = torch.arange(b)[:, None].expand_as(gt0)
+    pos_ll = logp[:, :-1, :][bi[pos], torch.nonzero(pos)[:, 1], gt0[pos]]
+    neg_ll = torch.cat([logp[:, :-1, -1][gt0 == -1], logp[:, -1, :-1][gt1 == -1]])
     pos_term = -pos_ll.mean() if pos_ll.numel() else logp.new_zeros(())
     neg_term = -neg_ll.mean() if neg_ll.numel() else logp.new_zeros(())
     return 0.5 * pos_term + 0.5 * neg_term
@@ -93,116 +75,235 @@ def precision_recall(pred0: torch.Tensor, gt0: torch.Tensor) -> tuple[int, int, 
     return tp, predicted.sum().item(), (gt0 >= 0).sum().item()
 
 
+def lr_at(pairs: int, total: int, warmup: int, peak: float, decay_from: float = 0.6) -> float:
+    """Linear warm-up over ``warmup`` pairs, constant, then cosine to 10% over the last
+    ``1 − decay_from`` of ``total`` pairs."""
+    if pairs < warmup:
+        return peak * (pairs + 1) / warmup
+    start = decay_from * total
+    if pairs < start:
+        return peak
+    t = min(1.0, (pairs - start) / max(total - start, 1))
+    return peak * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def parse_schedule(text: str) -> list[tuple[int, int, float]]:
+    """``"512x8:0.5,1024x4:0.3,2048x2:0.2"`` → [(keypoints, batch, probability)]."""
+    out = []
+    for part in text.split(","):
+        kb, p = part.split(":")
+        k, b = kb.split("x")
+        out.append((int(k), int(b), float(p)))
+    total = sum(p for _, _, p in out)
+    return [(k, b, p / total) for k, b, p in out]
+
+
 @torch.no_grad()
-def validate(model: Matcher, data: dict, bs: int) -> dict:
+def validate(model: Matcher, shards: list[stream.Shard], keypoints: int, threshold: float, auc: bool) -> dict:
+    """Loss, P/R/F1 at ``threshold`` over the holdout pairs cut to ``keypoints``; with
+    ``auc``, homography AUC@5px (corner error, RANSAC 3 px) over the synthetic ones."""
+    from paraformer import geometry as g
+
     model.eval()
     tp = npred = ngt = 0
-    loss = 0.0
-    n = data["keypoints"].shape[0]
-    for s in range(0, n, bs):
-        bt = batch(data, torch.arange(s, min(s + bs, n)))
-        out = model(bt)
-        loss += nll_loss(out["log_assignment"], bt["gt0"], bt["gt1"]).item() * bt["gt0"].shape[0]
-        a, b_, c = precision_recall(out["matches0"], bt["gt0"])
-        tp, npred, ngt = tp + a, npred + b_, ngt + c
+    loss, n, errors = 0.0, 0, []
+    for shard in shards:
+        for i in range(len(shard)):
+            bt = stream.collate([(shard, i)], keypoints, [False])
+            logp = log_optimal_transport(model.scores(bt), model.bin_score, model.config["sinkhorn_iterations"])
+            loss += nll_loss(logp, bt["gt0"], bt["gt1"]).item()
+            n += 1
+            pred = extract_matches(logp, threshold)["matches0"]
+            a, b_, c = precision_recall(pred, bt["gt0"])
+            tp, npred, ngt = tp + a, npred + b_, ngt + c
+            if auc and shard.kind[i] == 0:
+                m0 = pred[0].numpy()
+                ok = m0 >= 0
+                p0 = bt["keypoints0"][0].numpy()[ok]
+                p1 = bt["keypoints1"][0].numpy()[m0[ok]]
+                w, h = shard.image_size[i][0]
+                err = float("inf")
+                if ok.sum() >= 4:
+                    try:
+                        fit = g.find_homography(p0, p1, threshold=3.0)
+                        if fit["model"] is not None:
+                            err = g.homography_corner_error(fit["model"], shard.H[i], w, h)
+                    except ValueError:
+                        pass
+                errors.append(err)
     model.train()
     p, r = tp / max(npred, 1), tp / max(ngt, 1)
-    return {"val_loss": loss / n, "precision": p, "recall": r, "f1": 2 * p * r / max(p + r, 1e-12)}
+    out = {f"val_loss@{keypoints}": loss / max(n, 1), f"precision@{keypoints}": p, f"recall@{keypoints}": r,
+           f"f1@{keypoints}": 2 * p * r / max(p + r, 1e-12)}
+    if auc:
+        e = np.sort(np.asarray(errors))
+        for t in (1, 3, 5):
+            # Exact AUC of the error CDF up to t px (as the evaluation harness).
+            x = np.concatenate([[0], e[e < t], [t]])
+            y = np.concatenate([[0], np.arange(1, (e < t).sum() + 1) / len(e), [(e < t).sum() / len(e)]])
+            out[f"auc{t}px@{keypoints}"] = float(np.trapz(y, x) / t)
+    return out
 
 
-def lr_at(step: int, total: int, warmup: int, peak: float) -> float:
-    """Linear warm-up, then cosine decay to 1% of the peak (paper §Implementation: AdamW)."""
-    if step < warmup:
-        return peak * (step + 1) / warmup
-    t = (step - warmup) / max(total - warmup, 1)
-    return peak * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * min(t, 1.0))))
+def start_generator(args, work: str, cursor: int) -> subprocess.Popen:
+    log = open(os.path.join(work, "generator.log"), "a")
+    cmd = [sys.executable, os.path.join(HERE, "generate_pairs.py"), "--pool", os.path.join(work, "pool"),
+           "--seed", str(args.seed), "--start", str(cursor), "--shard-size", str(args.shard_size),
+           "--max-pending", str(args.max_pending), "--real-fraction", str(args.real_fraction),
+           "--parent", str(os.getpid())]
+    env = dict(os.environ, RAYON_NUM_THREADS=str(args.gen_threads), OMP_NUM_THREADS="1")
+    return subprocess.Popen(["nice", "-n", str(args.gen_nice)] + cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+
+
+def ensure_holdout(pairs: int = 256) -> list[stream.Shard]:
+    """Up to 256 fixed validation pairs: synthetic from train/bsds500_val (never trained on)
+    and real pairs from the held-out tail of each RGB-D sequence."""
+    folder = os.path.join(HERE, "cache", "holdout")
+    shared = os.path.join(HERE, "..", "..", "shared", "data")
+    if len([f for f in os.listdir(folder) if f.endswith(".npz")] if os.path.isdir(folder) else []) < 2:
+        subprocess.run([sys.executable, os.path.join(HERE, "generate_pairs.py"), "--pool", folder, "--seed", "1",
+                        "--shards", "2", "--shard-size", "128", "--max-pending", "1000",
+                        "--photos", os.path.join(shared, "train", "bsds500_val"), "--rgbd-split", "holdout",
+                        "--real-fraction", "0.25"], check=True)
+    shards = [stream.Shard(stream.shard_path(folder, i)) for i in range(2)]
+    return shards[: max(1, -(-pairs // 128))]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--preset", required=True, choices=["superglue", "parallel_mlp", "paraformer", "paraformer_u"])
-    ap.add_argument("--dim", type=int, default=128)
+    ap.add_argument("--run", required=True, help="committed folder: config, last.pt, log.jsonl")
+    ap.add_argument("--work", default=None, help="scratch folder (default training/runs/<run name>)")
+    ap.add_argument("--preset", default="paraformer", choices=["superglue", "parallel_mlp", "paraformer", "paraformer_u"])
+    ap.add_argument("--dim", type=int, default=64)
+    ap.add_argument("--heads", type=int, default=1)
     ap.add_argument("--depth", type=int, default=4, help="layers (SuperGlue: self+cross pairs)")
-    ap.add_argument("--data", required=True)
-    ap.add_argument("--val", required=True)
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--steps", type=int, default=3000)
-    ap.add_argument("--batch", type=int, default=8)
-    ap.add_argument("--lr", type=float, default=5e-4)
-    ap.add_argument("--warmup", type=int, default=200)
-    ap.add_argument("--weight-decay", type=float, default=0.01)
     ap.add_argument("--sinkhorn", type=int, default=50, help="Sinkhorn iterations (training and shipped config)")
-    ap.add_argument("--val-every", type=int, default=250)
+    ap.add_argument("--sinkhorn-grad", choices=["last", "full"], default="last")
+    ap.add_argument("--pairs", type=int, default=600_000, help="training pairs in all (lr schedule length)")
+    ap.add_argument("--stop-after", type=int, default=None, help="stop this invocation after this many pairs in all")
+    ap.add_argument("--keypoints", default="512x8:0.55,1024x4:0.3,2048x2:0.15",
+                    help="per-step keypoints x batch : probability")
+    ap.add_argument("--lr", type=float, default=5e-4)
+    ap.add_argument("--warmup", type=int, default=4000, help="warm-up pairs")
+    ap.add_argument("--weight-decay", type=float, default=0.01)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--shard-size", type=int, default=128)
+    ap.add_argument("--max-pending", type=int, default=24)
+    ap.add_argument("--reuse", type=float, default=1.0, help="draws per pair before its shard is retired")
+    ap.add_argument("--real-fraction", type=float, default=0.2)
+    ap.add_argument("--gen-threads", type=int, default=1)
+    ap.add_argument("--gen-nice", type=int, default=5)
+    ap.add_argument("--ckpt-minutes", type=float, default=10.0)
+    ap.add_argument("--val-every", type=int, default=20_000, help="validate every this many pairs")
+    ap.add_argument("--val-threshold", type=float, default=0.2)
+    ap.add_argument("--val-pairs", type=int, default=256, help="holdout pairs per validation")
+    ap.add_argument("--fixed-pool", default=None,
+                    help="read this pre-generated pool (kept, no generator): short comparison runs")
     args = ap.parse_args()
 
     torch.set_num_threads(args.threads)
+    name = os.path.basename(os.path.normpath(args.run))
+    work = args.work or os.path.join(HERE, "runs", name)
+    os.makedirs(args.run, exist_ok=True)
+    os.makedirs(work, exist_ok=True)
+    ckpt = os.path.join(args.run, "last.pt")
+    state = torch.load(ckpt, weights_only=False) if os.path.exists(ckpt) else None
+    if state is not None:
+        saved = state["args"]
+        changed = {k: (saved[k], getattr(args, k)) for k in MODEL_ARGS if saved.get(k) != getattr(args, k)}
+        if changed:
+            sys.exit(f"error: {ckpt} was trained with other model arguments: {changed}")
     torch.manual_seed(args.seed)
-    os.makedirs(args.out, exist_ok=True)
-    cfg = preset(args.preset, args.dim, args.depth) | {"sinkhorn_iterations": args.sinkhorn}
+    cfg = preset(args.preset, args.dim, args.depth, args.heads) | {"sinkhorn_iterations": args.sinkhorn}
     model = Matcher(cfg).train()
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
-    data, val = load_shards(args.data), load_shards(args.val)
-    n = data["keypoints"].shape[0]
-    gen = torch.Generator().manual_seed(args.seed)
-    step, best, spent = 0, -1.0, 0.0
-    ckpt = os.path.join(args.out, "last.pt")
-    if os.path.exists(ckpt):
-        state = torch.load(ckpt, weights_only=False)
+    pairs_seen, steps, cursor, spent, best = 0, 0, 0, 0.0, -1.0
+    rng = np.random.default_rng([args.seed, 7])
+    if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["opt"])
-        gen.set_state(state["gen"])
-        step, best, spent = state["step"], state["best"], state.get("spent", 0.0)
-        print(f"resumed at step {step} (best F1 {best:.4f})", flush=True)
-    with open(os.path.join(args.out, "config.json"), "w") as f:
-        json.dump({"args": vars(args), "config": model.config, "train_pairs": n}, f, indent=1)
-    log = open(os.path.join(args.out, "log.jsonl"), "a")
+        pairs_seen, steps, cursor = state["pairs"], state["steps"], state["cursor"]
+        spent, best = state["train_s"], state["best"]
+        rng.bit_generator.state = state["rng"]
+        print(f"resumed at {pairs_seen} pairs, step {steps}, stream shard {cursor}", flush=True)
+    with open(os.path.join(args.run, "config.json"), "w") as f:
+        json.dump({"args": vars(args), "config": model.config}, f, indent=1)
+    holdout = ensure_holdout(args.val_pairs)
+    if args.fixed_pool:
+        gen = None
+        reader = stream.PoolReader(args.fixed_pool, cursor, reuse=args.reuse, rng=rng, delete=False)
+    else:
+        gen = start_generator(args, work, cursor)
+        reader = stream.PoolReader(os.path.join(work, "pool"), cursor, reuse=args.reuse, rng=rng)
+    schedule = parse_schedule(args.keypoints)
+    sinkhorn = log_optimal_transport_last_grad if args.sinkhorn_grad == "last" else log_optimal_transport
+    log = open(os.path.join(args.run, "log.jsonl"), "a")
+    stop = {"now": False}
+    signal.signal(signal.SIGTERM, lambda *_: stop.update(now=True))
+    signal.signal(signal.SIGINT, lambda *_: stop.update(now=True))
+    limit = min(args.pairs, args.stop_after or args.pairs)
+    next_val = (pairs_seen // args.val_every + 1) * args.val_every
+    t_ckpt = t_mark = time.time()
+    running: list[float] = []
+    kinds = {k: 0 for k, _, _ in schedule}
+
+    def save() -> None:
+        blob = {"model": model.state_dict(), "opt": opt.state_dict(), "pairs": pairs_seen, "steps": steps,
+                "cursor": reader.low_water(), "train_s": spent + time.time() - t_mark, "best": best,
+                "rng": rng.bit_generator.state, "args": vars(args)}
+        torch.save(blob, ckpt + ".tmp")
+        os.replace(ckpt + ".tmp", ckpt)
+
     try:
-        from tqdm import tqdm
-
-        bar = tqdm(total=args.steps, initial=step, dynamic_ncols=True, mininterval=5)
-    except ImportError:
-        bar = None
-    running, t_last = [], time.time()
-    while step < args.steps:
-        for g in opt.param_groups:
-            g["lr"] = lr_at(step, args.steps, args.warmup, args.lr)
-        idx = torch.randint(0, n, (args.batch,), generator=gen)
-        swap = torch.rand(args.batch, generator=gen) < 0.5
-        bt = batch(data, idx, swap)
-        out = model.scores(bt)
-        from paraformer_train.model import log_optimal_transport
-
-        logp = log_optimal_transport(out, model.bin_score, args.sinkhorn)
-        loss = nll_loss(logp, bt["gt0"], bt["gt1"])
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        step += 1
-        running.append(loss.item())
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(loss=f"{np.mean(running[-50:]):.3f}")
-        if step % args.val_every == 0 or step == args.steps:
-            now = time.time()
-            spent += now - t_last
-            v = validate(model, val, 16)
-            rec = {"step": step, "loss": float(np.mean(running)), "lr": opt.param_groups[0]["lr"], "train_s": round(spent, 1)} | v
-            running = []
-            log.write(json.dumps(rec) + "\n")
-            log.flush()
-            print(json.dumps(rec), flush=True)
-            if v["f1"] > best:
-                best = v["f1"]
-                save_safetensors(model, os.path.join(args.out, "best.safetensors"))
-            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "gen": gen.get_state(),
-                        "step": step, "best": best, "spent": spent}, ckpt + ".tmp")
-            os.replace(ckpt + ".tmp", ckpt)
-            t_last = time.time()
-    save_safetensors(model, os.path.join(args.out, "last.safetensors"))
-    print(f"done: {step} steps, best validation F1 {best:.4f}", flush=True)
+        while pairs_seen < limit and not stop["now"]:
+            if gen is not None and gen.poll() is not None:
+                gen = start_generator(args, work, reader.low_water())
+            k, bsz, _ = schedule[int(rng.choice(len(schedule), p=[p for _, _, p in schedule]))]
+            items = reader.draw(bsz)
+            bt = stream.collate(items, k, list(rng.random(bsz) < 0.5))
+            for g_ in opt.param_groups:
+                g_["lr"] = lr_at(pairs_seen, args.pairs, args.warmup, args.lr)
+            logp = sinkhorn(model.scores(bt), model.bin_score, args.sinkhorn)
+            loss = nll_loss(logp, bt["gt0"], bt["gt1"])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+            steps += 1
+            pairs_seen += bsz
+            kinds[k] += bsz
+            running.append(loss.item())
+            if steps % 50 == 0:
+                rate = sum(kinds.values()) / max(time.time() - t_mark, 1e-9)
+                print(f"step {steps} pairs {pairs_seen} loss {np.mean(running[-50:]):.4f} "
+                      f"lr {opt.param_groups[0]['lr']:.2e} {rate:.1f} pairs/s shard {reader.low_water()}", flush=True)
+            if pairs_seen >= next_val or pairs_seen >= limit:
+                next_val += args.val_every
+                v = validate(model, holdout, 512, args.val_threshold, auc=False)
+                v |= validate(model, holdout, 2048, args.val_threshold, auc=True)
+                rec = {"pairs": pairs_seen, "steps": steps, "loss": float(np.mean(running)) if running else None,
+                       "lr": opt.param_groups[0]["lr"], "train_s": round(spent + time.time() - t_mark, 1),
+                       "distinct_pairs": reader.low_water() * args.shard_size, "by_keypoints": dict(kinds)} | v
+                running = []
+                log.write(json.dumps(rec) + "\n")
+                log.flush()
+                print(json.dumps(rec), flush=True)
+                score = v["auc5px@2048"] + v["f1@2048"]
+                if score > best:
+                    best = score
+                    save_safetensors(model, os.path.join(work, "best.safetensors"))
+                save()
+                t_ckpt = time.time()
+            if time.time() - t_ckpt > args.ckpt_minutes * 60:
+                save()
+                t_ckpt = time.time()
+    finally:
+        save()
+        save_safetensors(model, os.path.join(work, "last.safetensors"))
+        if gen is not None:
+            gen.terminate()
+        print(f"stopped at {pairs_seen} pairs, step {steps}", flush=True)
 
 
 if __name__ == "__main__":

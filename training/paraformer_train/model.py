@@ -9,7 +9,9 @@ from __future__ import annotations
 import copy
 import math
 
+import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 DEFAULTS = {
@@ -115,7 +117,14 @@ def scaled_scores(q, k):
     return q @ k.transpose(-1, -2) / math.sqrt(q.shape[-1])
 
 
-def attention(q, k, v):
+FUSED_ATTENTION = True  # False: explicit softmax everywhere (the slower pre-SDPA path)
+
+
+def attention(q, k, v, need_prob: bool = True):
+    """Softmax attention; without ``need_prob`` it runs as one fused
+    ``scaled_dot_product_attention`` (same value, far less memory traffic in training)."""
+    if not need_prob and FUSED_ATTENTION:
+        return merge_heads(F.scaled_dot_product_attention(q, k, v)), None
     prob = scaled_scores(q, k).softmax(-1)
     return merge_heads(prob @ v), prob
 
@@ -131,7 +140,7 @@ class Attention(nn.Module):
 
     def forward(self, x, src):
         q, k, v = (split_heads(p(t), self.heads) for p, t in zip(self.proj, (x, src, src)))
-        return self.merge(attention(q, k, v)[0])
+        return self.merge(attention(q, k, v, need_prob=False)[0])
 
 
 class SerialLayer(nn.Module):
@@ -175,19 +184,22 @@ class ParallelAttention(nn.Module):
             return self.merge, self.merge
         return self.self_merge, self.cross_merge
 
-    def forward(self, x, y):
+    def forward(self, x, y, need_probs: bool = True):
+        """``need_probs``: also return the self-attention probabilities (attentional pooling
+        reads them); without, every attention is fused SDPA. The shared cross-attention of
+        image 1 is SDPA with query K_y and key Q_x: exactly the column softmax of Q_x·K_yᵀ."""
         sp, cp = self.projections()
         h = self.heads
         sh = lambda p, t: split_heads(p(t), h)  # noqa: E731
-        self_x, prob_x = attention(sh(sp[0], x), sh(sp[1], x), sh(sp[2], x))
-        self_y, prob_y = attention(sh(sp[0], y), sh(sp[1], y), sh(sp[2], y))
+        self_x, prob_x = attention(sh(sp[0], x), sh(sp[1], x), sh(sp[2], x), need_probs)
+        self_y, prob_y = attention(sh(sp[0], y), sh(sp[1], y), sh(sp[2], y), need_probs)
         vx, vy = sh(cp[2], x), sh(cp[2], y)
-        s = scaled_scores(sh(cp[0], x), sh(cp[1], y))
-        cross_x = merge_heads(s.softmax(-1) @ vy)
+        qx, ky = sh(cp[0], x), sh(cp[1], y)
+        cross_x = attention(qx, ky, vy, need_prob=False)[0]
         if self.share_weights:
-            cross_y = merge_heads(s.transpose(-1, -2).softmax(-1) @ vx)
+            cross_y = attention(ky, qx, vx, need_prob=False)[0]
         else:
-            cross_y = attention(sh(cp[0], y), sh(cp[1], x), vx)[0]
+            cross_y = attention(sh(cp[0], y), sh(cp[1], x), vx, need_prob=False)[0]
         return (self_x, cross_x), (self_y, cross_y), (prob_x, prob_y)
 
 
@@ -197,8 +209,8 @@ class ParallelLayer(nn.Module):
         self.attn = ParallelAttention(c, heads, switches)
         self.fuse = nn.Sequential(nn.Linear(3 * c, 2 * c), nn.LayerNorm(2 * c), nn.GELU(), nn.Linear(2 * c, c))
 
-    def forward(self, x, y):
-        (sx, cx), (sy, cy), probs = self.attn(x, y)
+    def forward(self, x, y, need_probs: bool = True):
+        (sx, cx), (sy, cy), probs = self.attn(x, y, need_probs)
         m_self, m_cross = self.attn.merges()
         x2 = x + self.fuse(torch.cat([x, m_self(sx), m_cross(cx)], -1))
         y2 = y + self.fuse(torch.cat([y, m_self(sy), m_cross(cy)], -1))
@@ -264,10 +276,11 @@ class Stage(nn.Module):
         super().__init__()
         self.layers = nn.ModuleList([ParallelLayer(c, heads, switches) for _ in range(depth)])
 
-    def forward(self, x, y):
+    def forward(self, x, y, need_probs: bool = False):
+        """``need_probs``: the last layer's self-attention probabilities are returned."""
         probs = None
-        for layer in self.layers:
-            x, y, probs = layer(x, y)
+        for i, layer in enumerate(self.layers):
+            x, y, probs = layer(x, y, need_probs and i == len(self.layers) - 1)
         return x, y, probs
 
 
@@ -285,6 +298,63 @@ def log_optimal_transport(scores, bin_score, iters: int):
     log_nu = torch.cat([norm.expand(n), ms.log()[None] + norm]).expand(b, -1)
     u, v = torch.zeros_like(log_mu), torch.zeros_like(log_nu)
     for _ in range(iters):
+        u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)
+        v = log_nu - torch.logsumexp(z + u[:, :, None], dim=1)
+    return z + u[:, :, None] + v[:, None, :] - norm
+
+
+def _couplings(scores, bin_score):
+    b, m, n = scores.shape
+    one = scores.new_tensor(1)
+    ms, ns = m * one, n * one
+    z = torch.cat([torch.cat([scores, bin_score.expand(b, m, 1)], -1),
+                   torch.cat([bin_score.expand(b, 1, n), bin_score.expand(b, 1, 1)], -1)], 1)
+    norm = -(ms + ns).log()
+    log_mu = torch.cat([norm.expand(m), ns.log()[None] + norm]).expand(b, -1)
+    log_nu = torch.cat([norm.expand(n), ms.log()[None] + norm]).expand(b, -1)
+    return z, log_mu, log_nu, norm
+
+
+@torch.no_grad()
+def _sinkhorn_potentials(z, log_mu, log_nu, iters: int):
+    """``iters`` SPEC §8 iterations from u = v = 0 without autograd, in the scaling domain
+    (one exp, then matrix–vector products; rows and columns stabilised by their maxima, so
+    every row and column of the kernel holds a 1); falls back to the log domain if a
+    scaling leaves float32's range."""
+    u = torch.zeros_like(log_mu)
+    v = torch.zeros_like(log_nu)
+    if iters <= 0:
+        return u, v
+    r = z.amax(2, keepdim=True)
+    c = (z - r).amax(1, keepdim=True)
+    # numpy's batched matrix–vector product is ~8x faster than torch.bmm's on CPU here.
+    k = (z - r - c).exp().cpu().numpy()
+    kt = np.ascontiguousarray(k.transpose(0, 2, 1))
+    mu, nu = log_mu.exp().cpu().numpy(), log_nu.exp().cpu().numpy()
+    bvec = c[:, 0, :].exp().cpu().numpy()
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        for _ in range(iters):
+            a = mu / np.matmul(k, bvec[..., None])[..., 0]
+            bvec = nu / np.matmul(kt, a[..., None])[..., 0]
+        us = torch.from_numpy(np.log(a)).to(z) - r[..., 0]
+        vs = torch.from_numpy(np.log(bvec)).to(z) - c[:, 0, :]
+    if torch.isfinite(us).all() and torch.isfinite(vs).all():
+        return us, vs
+    for _ in range(iters):
+        u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)
+        v = log_nu - torch.logsumexp(z + u[:, :, None], dim=1)
+    return u, v
+
+
+def log_optimal_transport_last_grad(scores, bin_score, iters: int, grad_iters: int = 1):
+    """SPEC §8 Sinkhorn whose value equals ``log_optimal_transport`` (up to rounding) but
+    whose gradient flows through the last ``grad_iters`` iterations only: the earlier ones
+    run without autograd from the same start (a training approximation, A/B-tested in
+    ``training/ab_sinkhorn_grad.py``)."""
+    z, log_mu, log_nu, norm = _couplings(scores, bin_score)
+    grad_iters = max(1, min(grad_iters, iters))
+    u, v = _sinkhorn_potentials(z.detach(), log_mu, log_nu, iters - grad_iters)
+    for _ in range(grad_iters):
         u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)
         v = log_nu - torch.logsumexp(z + u[:, :, None], dim=1)
     return z + u[:, :, None] + v[:, None, :] - norm
@@ -353,11 +423,11 @@ class Matcher(nn.Module):
                 x, y = layer(x, y)
         elif model == "paraformer":
             for layer in self.layers:
-                x, y, _ = layer(x, y)
+                x, y, _ = layer(x, y, need_probs=False)
         else:
             skips, indices = [], []
             for p in range(2):
-                x, y, probs = self.stages[p](x, y)
+                x, y, probs = self.stages[p](x, y, need_probs=self.config["pooling"] == "attentional")
                 px, py = probs if probs is not None else (None, None)
                 skips.append((x, y))
                 (x, ix), (y, iy) = self.pools[p](x, px, 0), self.pools[p](y, py, 1)

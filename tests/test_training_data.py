@@ -1,0 +1,104 @@
+"""The training stream's ground truth and shard format (training/paraformer_train).
+
+Needs torch; skipped (with the reason printed) where it is not installed, as in CI.
+Checked against independent rules: the Rust core's homography ground truth (the evaluation
+rule) and a hand-built RGB-D scene with known geometry.
+"""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="torch not installed: the training code is checked only where it is")
+pytest.importorskip("cv2")
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "training"))
+from paraformer_train import data, rgbd, stream  # noqa: E402
+from paraformer_train.labels import ground_truth  # noqa: E402
+from paraformer_train.model import log_optimal_transport, log_optimal_transport_last_grad  # noqa: E402
+
+from paraformer.geometry import gt_matches_from_homography  # noqa: E402
+
+
+def test_labels_equal_the_evaluation_rule_for_homographies():
+    rng = np.random.default_rng(3)
+    for trial in range(5):
+        h = np.array([[1.02, 0.05, 4.0], [-0.03, 0.98, -2.0], [1e-5, 2e-5, 1.0]])
+        k0 = rng.uniform(0, 300, (200, 2)).astype(np.float32)
+        # Half the keypoints of image 1 are noisy images of image 0's, the rest random.
+        k1 = np.concatenate([data.apply_h(h, k0[:100]) + rng.normal(0, 1.5, (100, 2)),
+                             rng.uniform(0, 300, (120, 2))]).astype(np.float32)
+        want0, want1 = gt_matches_from_homography(h, k0, k1, threshold=3.0)
+        p0 = data.apply_h(h, k0)
+        p1 = data.apply_h(np.linalg.inv(h), k1)
+        got0, got1 = ground_truth(*(torch.from_numpy(a)[None] for a in (k0, k1, p0, p1)))
+        assert np.array_equal(got0[0].numpy(), want0), trial
+        assert np.array_equal(got1[0].numpy(), want1), trial
+        assert (want0 >= 0).sum() > 50
+
+
+def test_unknown_projections_are_ignored_not_unmatched():
+    k0 = torch.tensor([[[10.0, 10.0], [50.0, 50.0], [90.0, 90.0]]])
+    k1 = torch.tensor([[[10.0, 10.0], [200.0, 200.0]]])
+    nan = float("nan")
+    p0 = torch.tensor([[[10.0, 10.0], [nan, nan], [rgbd.OCCLUDED, rgbd.OCCLUDED]]])
+    p1 = torch.tensor([[[10.0, 10.0], [nan, nan]]])
+    m0, m1 = ground_truth(k0, k1, p0, p1)
+    assert m0.tolist() == [[0, -2, -1]]  # matched, unknown → ignored, occluded → unmatched
+    assert m1.tolist() == [[0, -2]]
+
+
+def test_rgbd_projection_of_a_plane():
+    """A fronto-parallel wall 2 m away seen by two cameras 0.2 m apart: projections are the
+    known disparity shift; a box in front of the wall occludes what lies behind it."""
+    K = np.array([[500.0, 0, 160], [0, 500.0, 120], [0, 0, 1]])
+    depth_a = np.full((240, 320), 2.0, np.float32)
+    depth_b = depth_a.copy()
+    pose_a = np.eye(4)
+    pose_b = np.eye(4)
+    pose_b[0, 3] = 0.2  # camera b 0.2 m to the right: points move 50 px left
+    pts = np.array([[100.0, 100.0], [200.0, 50.0], [10.0, 10.0]], np.float32)
+    proj = rgbd.project(pts, depth_a, depth_b, K, pose_a, pose_b)
+    np.testing.assert_allclose(proj[:2], pts[:2] - [50, 0], atol=1e-4)
+    assert proj[2, 0] < 0  # leaves the frame: kept (becomes unmatched), not unknown
+    depth_b[90:110, 40:60] = 1.0  # a box in front of the wall where (100, 100) lands
+    depth_a[50, 200] = 0.0  # missing depth where (200, 50) starts
+    proj = rgbd.project(pts, depth_a, depth_b, K, pose_a, pose_b)
+    assert proj[0, 0] == rgbd.OCCLUDED
+    assert np.isnan(proj[1]).all()
+
+
+def test_shard_round_trip_and_top_k_cut(tmp_path):
+    rng = np.random.default_rng(0)
+    def feats(n):
+        d = rng.normal(size=(n, 64)).astype(np.float32)
+        return {"keypoints": rng.uniform(0, 100, (n, 2)).astype(np.float32),
+                "scores": np.sort(rng.uniform(0, 1, n)).astype(np.float32)[::-1].copy(),
+                "descriptors": d / np.linalg.norm(d, axis=1, keepdims=True),
+                "image_size": np.array([100, 80], np.float32)}
+    pairs = []
+    for n0, n1 in ((30, 40), (50, 20)):
+        f0, f1 = feats(n0), feats(n1)
+        pairs.append({"f": (f0, f1), "proj": (f0["keypoints"] + 1, f1["keypoints"] - 1), "kind": 0, "H": np.eye(3)})
+    path = stream.shard_path(str(tmp_path), 7)
+    stream.write_shard(path, pairs)
+    shard = stream.Shard(path)
+    assert shard.index == 7 and len(shard) == 2
+    np.testing.assert_array_equal(shard.views[3][0], pairs[1]["f"][1]["keypoints"])
+    bt = stream.collate([(shard, 0), (shard, 1)], 25, [False, True])
+    # Cut to the fewest keypoints per side (view 0: min(30, 20 swapped in), view 1: min(40, 50) → 25).
+    assert bt["keypoints0"].shape == (2, 20, 2) and bt["keypoints1"].shape == (2, 25, 2)
+    np.testing.assert_array_equal(bt["keypoints0"][1].numpy(), pairs[1]["f"][1]["keypoints"][:20])
+    assert bt["gt0"].shape == (2, 20)
+
+
+def test_last_iteration_sinkhorn_has_the_full_value():
+    torch.manual_seed(0)
+    for scale in (1.0, 10.0, 50.0):
+        s = torch.randn(2, 40, 55) * scale
+        b = torch.tensor(0.5)
+        full = log_optimal_transport(s, b, 50)
+        fast = log_optimal_transport_last_grad(s, b, 50)
+        assert (full - fast).abs().max().item() < 1e-3 * max(1.0, scale)

@@ -1,0 +1,97 @@
+"""Training-step throughput, old against new, side by side in one process (calls alternated):
+
+  * before: explicit softmax attention, autograd through all Sinkhorn iterations
+    (the step of the first shipped weights);
+  * after: fused ``scaled_dot_product_attention`` and gradients through the last Sinkhorn
+    iteration only, the earlier ones in the scaling domain without autograd (``train.py``).
+
+Same model config, same batches (XFeat pairs from the stream), forward + backward + AdamW.
+
+    python training/bench_step.py --dim 64 --heads 4 --depth 4 --batch 8 --keypoints 512
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from paraformer_train import data, model as model_mod, stream  # noqa: E402
+from paraformer_train.model import Matcher, log_optimal_transport, log_optimal_transport_last_grad  # noqa: E402
+from train import nll_loss, preset  # noqa: E402
+
+SHARED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--preset", default="paraformer")
+    ap.add_argument("--dim", type=int, default=64)
+    ap.add_argument("--heads", type=int, default=4)
+    ap.add_argument("--depth", type=int, default=4)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--keypoints", type=int, default=512)
+    ap.add_argument("--sinkhorn", type=int, default=50)
+    ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    photos = data.list_photos([os.path.join(SHARED, "train", "bsds500_train")])[:40]
+    src = stream.PairSource(photos, [], seed=123, real_fraction=0.0)
+    os.makedirs("/tmp/bench_step", exist_ok=True)
+    path = stream.shard_path("/tmp/bench_step", 0)
+    stream.write_shard(path, [src.pair(i) for i in range(args.batch * 2)])
+    shard = stream.Shard(path)
+    batches = [stream.collate([(shard, b * args.batch + i) for i in range(args.batch)], args.keypoints,
+                              [False] * args.batch) for b in range(2)]
+    cfg = preset(args.preset, args.dim, args.depth, args.heads) | {"sinkhorn_iterations": args.sinkhorn}
+    variants = {
+        "before (explicit attention, full Sinkhorn autograd)": (False, log_optimal_transport),
+        "after (SDPA, last-iteration Sinkhorn gradient)": (True, log_optimal_transport_last_grad),
+    }
+    models = {}
+    for name in variants:
+        torch.manual_seed(0)
+        m = Matcher(cfg).train()
+        models[name] = (m, torch.optim.AdamW(m.parameters(), lr=1e-4))
+    times = {name: [] for name in variants}
+
+    def step(name: str, bt: dict) -> float:
+        fused, sinkhorn = variants[name]
+        model_mod.FUSED_ATTENTION = fused
+        m, opt = models[name]
+        t = time.perf_counter()
+        logp = sinkhorn(m.scores(bt), m.bin_score, args.sinkhorn)
+        loss = nll_loss(logp, bt["gt0"], bt["gt1"])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(m.parameters(), 1.0)
+        opt.step()
+        return time.perf_counter() - t
+
+    for name in variants:  # warm-up
+        step(name, batches[0])
+    for s in range(args.steps):
+        for name in (variants if s % 2 == 0 else list(variants)[::-1]):
+            times[name].append(step(name, batches[s % 2]))
+    res = {}
+    for name, ts in times.items():
+        med = float(np.median(ts))
+        res[name] = {"s_per_step": med, "pairs_per_s": args.batch / med}
+    base = list(res.values())[0]["pairs_per_s"]
+    for name, r in res.items():
+        r["speedup"] = r["pairs_per_s"] / base
+        print(f"{name:55s} {r['s_per_step']:.3f} s/step  {r['pairs_per_s']:.1f} pairs/s  {r['speedup']:.2f}x")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"args": vars(args), "config": cfg, "results": res}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,99 @@
+"""Generates training pairs into numbered shards of a pool folder (see
+``paraformer_train/stream.py``). The trainer starts it itself (``train.py``), from the
+shard its checkpoint reached; it can also run alone, e.g. for a fixed validation set:
+
+    python training/generate_pairs.py --pool training/cache/holdout --seed 1 --shards 2 \
+        --photos ../shared/data/train/bsds500_val --rgbd-split holdout
+
+Features are the project's XFeat (``paraformer.extract``, top-2048); ground truth is not
+stored but rebuilt by the trainer from each keypoint's projection, for whatever top-k it cuts.
+Only ``../shared/data/train`` and ``../shared/data/rgbd`` are read, never ``val/``,
+``pose/`` or ``homography/``.
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from paraformer_train import data, rgbd, stream  # noqa: E402
+
+SHARED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "..", "shared", "data")
+HOLDOUT_FRACTION = 0.15  # the last 15% of each RGB-D sequence is held out for validation
+
+
+def rgbd_sequences(roots: list[str], split: str, cache: str) -> list[tuple[rgbd.Sequence, list]]:
+    out = []
+    for root in roots:
+        seq = rgbd.Sequence(root)
+        cut = int(len(seq) * (1 - HOLDOUT_FRACTION))
+        frames = range(0, cut - 10) if split == "train" else range(cut, len(seq))
+        out.append((seq, rgbd.pair_list(seq, frames, cache)))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pool", required=True)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--start", type=int, default=0, help="first shard index")
+    ap.add_argument("--shards", type=int, default=None, help="stop after this many shard indices (default: endless)")
+    ap.add_argument("--shard-size", type=int, default=128)
+    ap.add_argument("--max-pending", type=int, default=24, help="wait while this many shards are on disk")
+    ap.add_argument("--photos", nargs="+", default=[os.path.join(SHARED, "train", d) for d in
+                                                    ("bsds500_train", "urban100", "sun80")])
+    ap.add_argument("--rgbd", nargs="*", default=sorted(glob.glob(os.path.join(SHARED, "rgbd", "*"))))
+    ap.add_argument("--rgbd-split", choices=["train", "holdout"], default="train")
+    ap.add_argument("--real-fraction", type=float, default=0.2)
+    ap.add_argument("--cache", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "cache", "rgbd_pairs"))
+    ap.add_argument("--parent", type=int, default=None, help="exit when this process is gone")
+    args = ap.parse_args()
+    for p in args.photos:
+        if os.sep + "val" + os.sep in os.path.abspath(p) + os.sep:
+            sys.exit("error: training photos must not come from val/")
+    import cv2
+
+    cv2.setNumThreads(1)
+    os.makedirs(args.pool, exist_ok=True)
+    seqs = rgbd_sequences([r for r in args.rgbd if os.path.isdir(r)], args.rgbd_split, args.cache)
+    src = stream.PairSource(data.list_photos(args.photos), seqs, args.seed, args.real_fraction)
+    print(f"generator: {len(src.photos)} photos, RGB-D pairs {[len(p) for _, p in src.sequences]}, "
+          f"real fraction {src.real_fraction}, from shard {args.start}", flush=True)
+    index = args.start
+    t0, made = time.time(), 0
+    while args.shards is None or index < args.start + args.shards:
+        path = stream.shard_path(args.pool, index)
+        if os.path.exists(path):
+            index += 1
+            continue
+        while len(glob.glob(os.path.join(args.pool, "shard_*.npz"))) >= args.max_pending:
+            if args.parent is not None and not _alive(args.parent):
+                return
+            time.sleep(3)
+        if args.parent is not None and not _alive(args.parent):
+            return
+        first = index * args.shard_size
+        pairs = [src.pair(first + i) for i in range(args.shard_size)]
+        stream.write_shard(path, pairs)
+        made += len(pairs)
+        kp = np.mean([min(len(p["f"][0]["keypoints"]), len(p["f"][1]["keypoints"])) for p in pairs])
+        print(f"{os.path.basename(path)}: {made / (time.time() - t0):.1f} pairs/s, mean keypoints {kp:.0f}, "
+              f"real {sum(p['kind'] for p in pairs)}", flush=True)
+        index += 1
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+        return True
+    except OSError:
+        return False
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,137 @@
+"""Real pairs from the RGB-D sequences in ``../shared/data/rgbd``: frame pairs chosen by
+depth covisibility, and per-keypoint reprojections into the other frame with an
+occlusion check, from which ``labels.ground_truth`` builds the 3 px ground truth.
+
+Projection codes per keypoint (``[K, 2]`` float32):
+  * the pixel in the other frame where its 3D point lands (visible, or outside the frame);
+  * ``OCCLUDED`` (far away: it becomes unmatched) when the other frame's depth shows a
+    surface in front of it;
+  * NaN (unknown: ignored unless the other direction decides) when either depth is missing
+    or the two depths disagree the other way (sensor or pose error).
+"""
+from __future__ import annotations
+
+import glob
+import json
+import os
+
+import cv2
+import numpy as np
+
+OCCLUDED = 1.0e6
+DEPTH_TOLERANCE = 0.05  # relative depth agreement for "the same surface"
+
+
+class Sequence:
+    """Frames of one RGB-D sequence: colour paths, depth paths, K, camera-to-world poses."""
+
+    def __init__(self, root: str):
+        self.root = root
+        self.name = os.path.basename(os.path.normpath(root))
+        self.K = np.loadtxt(os.path.join(root, "K.txt")).reshape(3, 3)
+        if os.path.isdir(os.path.join(root, "images")):  # hololens layout
+            self.images = sorted(glob.glob(os.path.join(root, "images", "*.jpg")))
+            self.depths = [os.path.join(root, "depth", os.path.basename(p)[:-4] + ".png") for p in self.images]
+            poses = np.loadtxt(os.path.join(root, "poses.txt")).reshape(-1, 4, 4)
+            self.invalid_depth = None
+        else:  # 7-Scenes layout
+            self.images = sorted(glob.glob(os.path.join(root, "frame-*.color.jpg")))
+            self.depths = [p.replace(".color.jpg", ".depth.png") for p in self.images]
+            poses = np.stack([np.loadtxt(p.replace(".color.jpg", ".pose.txt")) for p in self.images])
+            self.invalid_depth = 65535
+        if len(poses) != len(self.images) or not self.images:
+            raise ValueError(f"{root}: {len(self.images)} images but {len(poses)} poses")
+        self.poses = poses.astype(np.float64)
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def gray(self, i: int) -> np.ndarray:
+        """Frame i as XFeat sees a colour image: the mean of R, G and B, uint8."""
+        img = cv2.imread(self.images[i], cv2.IMREAD_COLOR)
+        if img is None:
+            raise ValueError(f"{self.images[i]}: unreadable image")
+        return np.round(img.astype(np.float32).mean(2)).astype(np.uint8)
+
+    def depth(self, i: int) -> np.ndarray:
+        """Depth in metres, float32, 0 where missing."""
+        d = cv2.imread(self.depths[i], cv2.IMREAD_UNCHANGED)
+        if d is None:
+            raise ValueError(f"{self.depths[i]}: unreadable depth")
+        d = d.astype(np.float32)
+        if self.invalid_depth is not None:
+            d[d == self.invalid_depth] = 0
+        return d / 1000.0
+
+
+def project(pts: np.ndarray, depth_a: np.ndarray, depth_b: np.ndarray, K: np.ndarray,
+            pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
+    """Keypoints ``pts`` of frame a mapped into frame b (codes in the module doc)."""
+    h, w = depth_a.shape
+    out = np.full((len(pts), 2), np.nan, np.float32)
+    if len(pts) == 0:
+        return out
+    xi = np.clip(np.round(pts[:, 0]).astype(int), 0, w - 1)
+    yi = np.clip(np.round(pts[:, 1]).astype(int), 0, h - 1)
+    z = depth_a[yi, xi].astype(np.float64)
+    ok = z > 0
+    rays = np.linalg.solve(K, np.stack([pts[:, 0], pts[:, 1], np.ones(len(pts))]).astype(np.float64))
+    x_a = rays * z
+    rel = np.linalg.solve(pose_b, pose_a)  # camera a → camera b
+    x_b = rel[:3, :3] @ x_a + rel[:3, 3:4]
+    zb = x_b[2]
+    front = zb > 1e-3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (K @ x_b)[:2] / x_b[2]
+    inside = (uv[0] >= -0.5) & (uv[0] <= w - 0.5) & (uv[1] >= -0.5) & (uv[1] <= h - 0.5)
+    safe = np.nan_to_num(np.round(uv), nan=0.0, posinf=0.0, neginf=0.0)
+    ub = np.clip(safe[0], 0, w - 1).astype(int)
+    vb = np.clip(safe[1], 0, h - 1).astype(int)
+    seen = depth_b[vb, ub].astype(np.float64)
+    vis = ok & front & inside & (seen > 0) & (np.abs(zb - seen) <= DEPTH_TOLERANCE * seen)
+    occl = ok & front & inside & (seen > 0) & (zb > seen * (1 + DEPTH_TOLERANCE))
+    outside = ok & front & ~inside
+    out[vis | outside] = uv.T[vis | outside]
+    out[occl] = OCCLUDED
+    return out
+
+
+def covisibility(seq: Sequence, depths: dict, a: int, b: int, step: int = 16) -> float:
+    """Fraction of frame a's grid pixels with depth that are visible in frame b."""
+    da = depths[a]
+    ys, xs = np.mgrid[step // 2 : da.shape[0] : step, step // 2 : da.shape[1] : step]
+    pts = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float32)
+    pts = pts[da[ys.ravel(), xs.ravel()] > 0]
+    if len(pts) == 0:
+        return 0.0
+    proj = project(pts, da, depths[b], seq.K, seq.poses[a], seq.poses[b])
+    ok = np.isfinite(proj[:, 0]) & (proj[:, 0] < OCCLUDED)
+    h, w = da.shape
+    vis = ok & (proj[:, 0] >= 0) & (proj[:, 0] < w) & (proj[:, 1] >= 0) & (proj[:, 1] < h)
+    return float(vis.mean())
+
+
+def pair_list(seq: Sequence, frames: range, cache: str, max_gap: int = 40,
+              overlap: tuple[float, float] = (0.2, 0.85)) -> list[tuple[int, int, float]]:
+    """Frame pairs ``(a, b, covisibility)`` within ``frames`` whose mutual covisibility lies in
+    ``overlap`` (cached as JSON: covisibility needs every depth map once)."""
+    key = f"{seq.name}_{frames.start}_{frames.stop}_{max_gap}_{overlap[0]}_{overlap[1]}.json"
+    path = os.path.join(cache, key)
+    if os.path.exists(path):
+        return [tuple(p) for p in json.load(open(path))]
+    depths = {i: seq.depth(i)[::2, ::2] for i in frames}
+    half = seq.K.copy()
+    half[:2] /= 2
+    small = Sequence.__new__(Sequence)
+    small.K, small.poses = half, seq.poses
+    pairs = []
+    idx = list(frames)
+    for ia, a in enumerate(idx):
+        for b in idx[ia + 1 : ia + 1 + max_gap]:
+            c = min(covisibility(small, depths, a, b, 8), covisibility(small, depths, b, a, 8))
+            if overlap[0] <= c <= overlap[1]:
+                pairs.append((a, b, round(c, 3)))
+    os.makedirs(cache, exist_ok=True)
+    json.dump(pairs, open(path + ".tmp", "w"))
+    os.replace(path + ".tmp", path)
+    return pairs

@@ -1,0 +1,66 @@
+"""Learning curves from ``log.jsonl`` files (validation loss, F1 and homography AUC@5px at
+512 and 2048 keypoints against pairs seen) into one PNG, and a JSON/markdown summary of
+the last validation of each run.
+
+    python training/plot_curves.py training/checkpoints/paraformer-xfeat --out training/curves.png
+    python training/plot_curves.py training/runs/compare/* --out training/results/config_comparison.png \
+        --summary training/results/config_comparison.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+
+def read_log(run: str) -> list[dict]:
+    path = os.path.join(run, "log.jsonl")
+    if not os.path.exists(path):
+        return []
+    return [json.loads(line) for line in open(path) if line.strip()]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--summary", default=None)
+    args = ap.parse_args()
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("val_loss@512", "val loss @512"), ("val_loss@2048", "val loss @2048"), ("f1@512", "F1 @512"),
+              ("f1@2048", "F1 @2048"), ("auc5px@2048", "H AUC@5px @2048"), ("precision@2048", "precision @2048")]
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7))
+    summary = {}
+    for run in args.runs:
+        log = read_log(run)
+        if not log:
+            continue
+        name = os.path.basename(os.path.normpath(run))
+        cfg = json.load(open(os.path.join(run, "config.json"))) if os.path.exists(os.path.join(run, "config.json")) else {}
+        summary[name] = {"last": log[-1], "args": cfg.get("args", {})}
+        x = [r["pairs"] for r in log]
+        for ax, (key, title) in zip(axes.ravel(), panels):
+            ys = [r.get(key) for r in log]
+            ax.plot(x, ys, marker="o", ms=3, label=name)
+            ax.set_title(title)
+            ax.set_xlabel("training pairs seen")
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    fig.savefig(args.out, dpi=90)
+    if args.summary:
+        with open(args.summary, "w") as f:
+            json.dump(summary, f, indent=1)
+    for name, s in summary.items():
+        last = s["last"]
+        print(f"{name:20s} pairs {last['pairs']:7d}  " + "  ".join(
+            f"{k} {last[k]:.3f}" for k, _ in panels if last.get(k) is not None))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# The long training of a shipped model, resumable anywhere: the committed checkpoint
+# (training/checkpoints/NAME/last.pt, weights + optimiser + stream cursor) is the state; the
+# pairs regenerate from seeds. Run (and rerun after any stop, on this or a fresh machine):
+#   nohup nice -n 10 bash training/train_shipped.sh paraformer-xfeat > training/runs/paraformer-xfeat.log 2>&1 &
+# Extra arguments go to train.py (e.g. --stop-after 300000). The model arguments below must
+# not change for a run in progress (train.py refuses a checkpoint of other model arguments).
+set -euo pipefail
+cd "$(dirname "$0")"
+name=${1:?usage: train_shipped.sh paraformer-xfeat|paraformer-u-xfeat [train.py arguments]}
+shift
+case "$name" in
+  paraformer-xfeat)   model=(--preset paraformer --dim 64 --heads 2 --depth 4) ;;
+  paraformer-u-xfeat) model=(--preset paraformer_u --dim 64 --heads 2 --depth 4) ;;
+  *) echo "unknown model $name" >&2; exit 2 ;;
+esac
+mkdir -p runs
+exec python train.py --run "checkpoints/$name" "${model[@]}" --sinkhorn 50 --pairs 600000 \
+  --keypoints 512x8:0.55,1024x4:0.3,2048x2:0.15 --lr 5e-4 --warmup 4000 --ckpt-minutes 10 "$@"
