@@ -7,7 +7,7 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 PAIRS=${PAIRS:-1536}
-common=(--fixed-pool runs/short_pool --pairs "$PAIRS" --warmup 400 --keypoints 512x8:1 --val-every 768
+common=(--fixed-pool runs/short_pool --pairs "$PAIRS" --warmup 400 --keypoints 512x8:1 --val-every "$PAIRS"
         --val-pairs 128 --threads 1 --lr 5e-4)
 run() { local name=$1; shift; python train.py --run "runs/compare/$name" --work "runs/compare/$name" "${common[@]}" "$@" \
           > "runs/compare/$name.log" 2>&1; }

@@ -110,7 +110,9 @@ def validate(model: Matcher, shards: list[stream.Shard], keypoints: int, thresho
     for shard in shards:
         for i in range(len(shard)):
             bt = stream.collate([(shard, i)], keypoints, [False])
-            logp = log_optimal_transport(model.scores(bt), model.bin_score, model.config["sinkhorn_iterations"])
+            # Same value as log_optimal_transport, far faster at 2048 keypoints (scaling domain).
+            logp = log_optimal_transport_last_grad(model.scores(bt), model.bin_score,
+                                                   model.config["sinkhorn_iterations"])
             loss += nll_loss(logp, bt["gt0"], bt["gt1"]).item()
             n += 1
             pred = extract_matches(logp, threshold)["matches0"]
