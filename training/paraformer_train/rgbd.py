@@ -96,7 +96,7 @@ def project(pts: np.ndarray, depth_a: np.ndarray, depth_b: np.ndarray, K: np.nda
     return out
 
 
-def covisibility(seq: Sequence, depths: dict, a: int, b: int, step: int = 16) -> float:
+def covisibility(K: np.ndarray, poses: np.ndarray, depths: dict, a: int, b: int, step: int = 16) -> float:
     """Fraction of frame a's grid pixels with depth that are visible in frame b."""
     da = depths[a]
     ys, xs = np.mgrid[step // 2 : da.shape[0] : step, step // 2 : da.shape[1] : step]
@@ -104,7 +104,7 @@ def covisibility(seq: Sequence, depths: dict, a: int, b: int, step: int = 16) ->
     pts = pts[da[ys.ravel(), xs.ravel()] > 0]
     if len(pts) == 0:
         return 0.0
-    proj = project(pts, da, depths[b], seq.K, seq.poses[a], seq.poses[b])
+    proj = project(pts, da, depths[b], K, poses[a], poses[b])
     ok = np.isfinite(proj[:, 0]) & (proj[:, 0] < OCCLUDED)
     h, w = da.shape
     vis = ok & (proj[:, 0] >= 0) & (proj[:, 0] < w) & (proj[:, 1] >= 0) & (proj[:, 1] < h)
@@ -120,15 +120,13 @@ def pair_list(seq: Sequence, frames: range, cache: str, max_gap: int = 40,
     if os.path.exists(path):
         return [tuple(p) for p in json.load(open(path))]
     depths = {i: seq.depth(i)[::2, ::2] for i in frames}
-    half = seq.K.copy()
+    half = seq.K.copy()  # intrinsics of the depth maps at half resolution
     half[:2] /= 2
-    small = Sequence.__new__(Sequence)
-    small.K, small.poses = half, seq.poses
     pairs = []
     idx = list(frames)
     for ia, a in enumerate(idx):
         for b in idx[ia + 1 : ia + 1 + max_gap]:
-            c = min(covisibility(small, depths, a, b, 8), covisibility(small, depths, b, a, 8))
+            c = min(covisibility(half, seq.poses, depths, a, b, 8), covisibility(half, seq.poses, depths, b, a, 8))
             if overlap[0] <= c <= overlap[1]:
                 pairs.append((a, b, round(c, 3)))
     os.makedirs(cache, exist_ok=True)

@@ -54,8 +54,7 @@ class PairSource:
         return self._synthetic(rng)
 
     def _features(self, img: np.ndarray) -> dict:
-        f = self.extract(img, self.max_keypoints)
-        return f
+        return self.extract(img, self.max_keypoints)
 
     def _synthetic(self, rng: np.random.Generator) -> dict:
         photo = self.photos[int(rng.integers(len(self.photos)))]
