@@ -15,5 +15,5 @@ case "$name" in
   *) echo "unknown model $name" >&2; exit 2 ;;
 esac
 mkdir -p runs
-exec python train.py --run "checkpoints/$name" "${model[@]}" --sinkhorn 50 --pairs 600000 \
-  --keypoints 512x8:0.55,1024x4:0.3,2048x2:0.15 --lr 5e-4 --warmup 4000 --ckpt-minutes 10 "$@"
+exec python train.py --run "checkpoints/$name" "${model[@]}" --sinkhorn 50 --pairs 400000 \
+  --keypoints 512x8:0.55,1024x4:0.3,2048x2:0.15 --lr 5e-4 --warmup 4000 --ckpt-minutes 10 --val-every 10000 "$@"

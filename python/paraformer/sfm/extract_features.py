@@ -1,0 +1,121 @@
+"""XFeat on every image of a folder into an hloc ``features.h5`` (resumable)."""
+from __future__ import annotations
+
+import os
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from pathlib import Path
+from typing import Optional, Sequence
+
+from .io import PathLike, _h5py, list_names, write_features
+from .progress import bar
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".pgm", ".ppm", ".pnm", ".pbm", ".bmp", ".tif", ".tiff", ".webp"}
+
+
+def list_images(image_dir: PathLike) -> list[str]:
+    """Image files under ``image_dir`` (recursively), as sorted names relative to it with
+    ``/`` separators, the names hloc and COLMAP use."""
+    root = Path(image_dir)
+    if not root.is_dir():
+        raise FileNotFoundError(f"image_dir: {root} is not a folder")
+    names = [p.relative_to(root).as_posix() for p in root.rglob("*")
+             if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+    bad = [n for n in names if any(c.isspace() for c in n)]
+    if bad:
+        raise ValueError(f"image_dir: image names with whitespace cannot go into a pairs file: {bad[:3]}")
+    return sorted(names)
+
+
+def _check_names(image_dir: Path, names: Sequence[str]) -> list[str]:
+    out = []
+    for n in names:
+        if not isinstance(n, str) or not (image_dir / n).is_file():
+            raise FileNotFoundError(f"image_list: {n!r} is not a file under {image_dir}")
+        out.append(Path(n).as_posix())
+    return out
+
+
+def _named(e: Exception, path: Path) -> Exception:
+    """The same exception type with the image path in front of its message (when the type
+    can be built from one string; else the original)."""
+    if str(path) in str(e):
+        return e
+    try:
+        return type(e)(f"{path}: {e}")
+    except Exception:
+        return e
+
+
+def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int = 2048,
+            overwrite: bool = False, image_list: Optional[Sequence[str]] = None,
+            num_workers: Optional[int] = None, as_half: bool = False, progress: bool = True,
+            backend: str = "local", **ray_options) -> Path:
+    """XFeat keypoints and descriptors of every image into hloc's ``features.h5`` layout.
+
+    Images already in the file are skipped unless ``overwrite`` (an interrupted run resumes);
+    each image is written as soon as it is done.
+
+    Args:
+        image_dir: the folder of images (searched recursively).
+        features_path: the h5 file to create or extend.
+        max_keypoints: keep at most this many keypoints per image, best score first.
+        overwrite: recompute images already in the file.
+        image_list: names relative to ``image_dir`` to extract (default: every image).
+        num_workers: images in flight at once (default: 2; each uses the Rust thread pool).
+        as_half: store descriptors and scores as float16, as hloc's ``as_half``.
+        progress: show a progress bar.
+        backend: ``"local"`` (threads in this process) or ``"ray"`` (see ``paraformer.sfm.ray_backend``).
+        ray_options: ``address``, ``num_workers``, ``threads_per_worker`` for ``backend="ray"``.
+    Returns:
+        ``features_path``.
+    """
+    import paraformer
+
+    if not isinstance(max_keypoints, int) or isinstance(max_keypoints, bool) or max_keypoints < 1:
+        raise ValueError(f"max_keypoints: expected a positive int, got {max_keypoints!r}")
+    image_dir, features_path = Path(image_dir), Path(features_path)
+    names = list_images(image_dir) if image_list is None else _check_names(image_dir, image_list)
+    if not names:
+        raise FileNotFoundError(f"image_dir: no images ({', '.join(sorted(IMAGE_SUFFIXES))}) under {image_dir}")
+    done = set() if overwrite else set(list_names(features_path))
+    todo = [n for n in names if n not in done]
+    features_path.parent.mkdir(parents=True, exist_ok=True)
+    if not todo:
+        return features_path
+    if backend == "ray":
+        from .ray_backend import extract_ray
+
+        return extract_ray(image_dir, features_path, todo, max_keypoints=max_keypoints,
+                           as_half=as_half, progress=progress, **ray_options)
+    if backend != "local":
+        raise ValueError(f"backend: expected 'local' or 'ray', got {backend!r}")
+    if ray_options:
+        raise TypeError(f"extract: options {sorted(ray_options)} are for backend='ray'")
+    h5py = _h5py()
+    workers = num_workers or 2
+    if workers < 1:
+        raise ValueError(f"num_workers: expected a positive int, got {num_workers!r}")
+
+    def one(name: str) -> dict:
+        return paraformer.extract(os.fspath(image_dir / name), max_keypoints=max_keypoints)
+
+    with ThreadPoolExecutor(workers) as pool, bar(len(todo), "extract", "img", progress) as pb, \
+            h5py.File(str(features_path), "a", libver="latest") as fd:
+        queue, pending = list(reversed(todo)), {}
+        while queue or pending:
+            while queue and len(pending) < 2 * workers:
+                name = queue.pop()
+                pending[pool.submit(one, name)] = name
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                name = pending.pop(fut)
+                try:
+                    feats = fut.result()
+                except Exception as e:
+                    for f in pending:
+                        f.cancel()
+                    raise _named(e, image_dir / name) from e
+                write_features(fd, name, feats, as_half)
+                fd.flush()
+                pb.update(1)
+    return features_path
