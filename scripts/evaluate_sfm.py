@@ -1,0 +1,139 @@
+"""Reconstruction quality per matcher on a posed image set (default: Strecha entry-P10).
+
+Each matcher runs the whole ``paraformer.sfm.reconstruct`` pipeline (exhaustive pairs);
+COLMAP's own SIFT pipeline (pycolmap: SIFT extraction, exhaustive SIFT matching, the same
+mapper) runs as the reference. Poses are scored against the ground-truth cameras: for
+every pair of images, the relative rotation error and the angle between relative
+translation directions (scale-free); the pair's error is the larger one, and an image that
+was not registered makes its pairs fail. Reported: registered images, points, track
+length, reprojection error, pose AUC@5/10/20°, seconds per stage.
+
+    python scripts/evaluate_sfm.py --out eval_results/sfm_strecha_entry-P10.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from itertools import combinations
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+STRECHA = ROOT.parent / "shared" / "data" / "pose" / "strecha_entry-P10"
+
+
+def read_strecha(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``name → (R_cw, t_cw)`` (world → camera) from Strecha's ``*.camera`` files."""
+    out = {}
+    for f in sorted((folder / "gt_dense_cameras").glob("*.camera")):
+        v = [list(map(float, line.split())) for line in f.read_text().splitlines() if line.strip()]
+        r_wc, c = np.array(v[4:7]), np.array(v[7])
+        out[f.name[: -len(".camera")]] = (r_wc.T, -r_wc.T @ c)
+    return out
+
+
+def poses_of(rec) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    out = {}
+    for im in rec.images.values():
+        if hasattr(im, "has_pose") and not im.has_pose:
+            continue
+        cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
+        out[im.name] = (np.asarray(cfw.rotation.matrix()), np.asarray(cfw.translation))
+    return out
+
+
+def angle(a: np.ndarray, b: np.ndarray) -> float:
+    c = np.dot(a, b) / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-12)
+    return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
+
+
+def pose_errors(est: dict, gt: dict) -> list[float]:
+    errs = []
+    for a, b in combinations(sorted(gt), 2):
+        if a not in est or b not in est:
+            errs.append(float("inf"))
+            continue
+        def rel(p):
+            (ra, ta), (rb, tb) = p[a], p[b]
+            r = rb @ ra.T
+            return r, tb - r @ ta
+        rg, tg = rel(gt)
+        re, te = rel(est)
+        r_err = float(np.degrees(np.arccos(np.clip((np.trace(rg.T @ re) - 1) / 2, -1, 1))))
+        errs.append(max(r_err, angle(tg, te)))
+    return errs
+
+
+def summarize(rec, gt: dict, seconds: dict) -> dict:
+    from paraformer import geometry
+
+    if rec is None:
+        return {"registered_images": 0, "pose_auc@5/10/20": [0.0, 0.0, 0.0], "seconds": seconds}
+    errs = pose_errors(poses_of(rec), gt)
+    return {"registered_images": rec.num_reg_images(), "points3D": rec.num_points3D(),
+            "mean_track_length": round(rec.compute_mean_track_length(), 3),
+            "mean_reprojection_error_px": round(rec.compute_mean_reprojection_error(), 3),
+            "pose_auc@5/10/20": [round(100 * a, 1) for a in geometry.pose_auc(errs, (5, 10, 20))],
+            "median_pair_error_deg": round(float(np.median(errs)), 3), "seconds": seconds}
+
+
+def run_colmap_sift(images: Path, work: Path) -> tuple[object, dict]:
+    import pycolmap
+
+    from paraformer.sfm.reconstruction import map_incremental, verify  # noqa: F401
+
+    db = work / "database.db"
+    t = time.time()
+    pycolmap.extract_features(db, images)
+    t_ext = time.time() - t
+    t = time.time()
+    pycolmap.match_exhaustive(db)
+    t_match = time.time() - t
+    t = time.time()
+    rec = map_incremental(pycolmap, db, images, work)
+    return rec, {"extract_s": round(t_ext, 2), "match_and_verify_s": round(t_match, 2),
+                 "mapping_s": round(time.time() - t, 2)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", type=Path, default=STRECHA, help="folder with images/ and gt_dense_cameras/")
+    ap.add_argument("--matchers", default="paraformer-xfeat,paraformer-u-xfeat,mnn")
+    ap.add_argument("--max-keypoints", type=int, default=2048)
+    ap.add_argument("--no-colmap-sift", action="store_true", help="skip COLMAP's SIFT reference")
+    ap.add_argument("--out", type=Path, default=None, help="JSON to write")
+    a = ap.parse_args()
+
+    import pycolmap
+
+    from paraformer import sfm
+
+    gt = read_strecha(a.scene)
+    results: dict = {"scene": str(a.scene), "images": len(gt), "max_keypoints": a.max_keypoints,
+                     "pycolmap": pycolmap.__version__, "rows": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in a.matchers.split(","):
+            out = Path(tmp) / name
+            sfm.reconstruct(a.scene / "images", out, matcher=name, max_keypoints=a.max_keypoints, progress=False)
+            s = json.loads((out / "summary.json").read_text())
+            rec = pycolmap.Reconstruction(str(out / "sparse" / "0")) if (out / "sparse" / "0").exists() else None
+            results["rows"][f"XFeat + {name}"] = summarize(rec, gt, s["seconds"])
+            print(name, json.dumps(results["rows"][f"XFeat + {name}"]), flush=True)
+        if not a.no_colmap_sift:
+            work = Path(tmp) / "colmap_sift"
+            work.mkdir()
+            rec, secs = run_colmap_sift(a.scene / "images", work)
+            results["rows"]["COLMAP SIFT (pycolmap defaults)"] = summarize(rec, gt, secs)
+            print("colmap sift", json.dumps(results["rows"]["COLMAP SIFT (pycolmap defaults)"]), flush=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps(results, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
