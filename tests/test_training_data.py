@@ -92,6 +92,10 @@ def test_shard_round_trip_and_top_k_cut(tmp_path):
     assert bt["keypoints0"].shape == (2, 20, 2) and bt["keypoints1"].shape == (2, 25, 2)
     np.testing.assert_array_equal(bt["keypoints0"][1].numpy(), pairs[1]["f"][1]["keypoints"][:20])
     assert bt["gt0"].shape == (2, 20)
+    # A shard being written (partial file) is never listed for readers.
+    (tmp_path / "partial_shard_000008.npz").write_bytes(b"PK partial")
+    (tmp_path / "shard_000009.npz.tmp.npz").write_bytes(b"PK partial")
+    assert stream.shard_files(str(tmp_path)) == [path]
 
 
 def test_last_iteration_sinkhorn_has_the_full_value():

@@ -71,7 +71,7 @@ def main() -> None:
         if os.path.exists(path):
             index += 1
             continue
-        while len(glob.glob(os.path.join(args.pool, "shard_*.npz"))) >= args.max_pending:
+        while len(stream.shard_files(args.pool)) >= args.max_pending:
             if args.parent is not None and not _alive(args.parent):
                 return
             time.sleep(3)

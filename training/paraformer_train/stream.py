@@ -12,6 +12,7 @@ into the other view; see ``rgbd`` for the codes), and per pair ``image_size [P, 
 from __future__ import annotations
 
 import glob
+import re
 import os
 import time
 
@@ -26,6 +27,12 @@ MAX_KEYPOINTS = 2048
 
 def shard_path(pool: str, index: int) -> str:
     return os.path.join(pool, f"shard_{index:06d}.npz")
+
+
+def shard_files(pool: str) -> list[str]:
+    """Complete shards of a pool folder, in index order (partial files never match)."""
+    return sorted(p for p in glob.glob(os.path.join(pool, "shard_*.npz"))
+                  if re.fullmatch(r"shard_\d{6}\.npz", os.path.basename(p)))
 
 
 def shard_index(path: str) -> int:
@@ -93,7 +100,8 @@ def write_shard(path: str, pairs: list[dict]) -> None:
         "kind": np.array([p["kind"] for p in pairs], np.int8),
         "H": np.array([p["H"] for p in pairs], np.float64),
     }
-    tmp = path + ".tmp.npz"
+    # The partial file must not match the readers' shard_NNNNNN.npz pattern.
+    tmp = os.path.join(os.path.dirname(path), "partial_" + os.path.basename(path))
     np.savez(tmp, **arrays)
     os.replace(tmp, path)
 
@@ -158,13 +166,13 @@ class PoolReader:
         self.shards: list[Shard] = []
         self.retired: set[int] = set()
         self.pairs_drawn = 0
-        for path in glob.glob(os.path.join(pool, "shard_*.npz")):
+        for path in shard_files(pool):
             if shard_index(path) < cursor and delete:
                 os.remove(path)  # left over from before the checkpoint: already used
 
     def _ready(self) -> list[str]:
         skip = {s.index for s in self.shards} | self.retired
-        paths = sorted(glob.glob(os.path.join(self.pool, "shard_*.npz")))
+        paths = shard_files(self.pool)
         return [p for p in paths if shard_index(p) >= self.cursor and shard_index(p) not in skip]
 
     def _fill(self, wait: bool) -> None:

@@ -41,38 +41,43 @@ pub fn attention(ctx: &Ctx, q: View, k: View, v: View, heads: usize, col_sums: b
     let blocks = m.div_ceil(BLOCK);
     let dst = SharedMut(out.data.as_mut_ptr());
     let err = Mutex::new(None);
-    let sums = (0..heads * blocks)
+    // Column sums are kept per task and added in task order afterwards, so that they do
+    // not depend on how rayon split the work (reproducible across thread counts).
+    let per_task: Vec<Vec<f32>> = (0..heads * blocks)
         .into_par_iter()
-        .fold(
-            || (Vec::new(), if col_sums { vec![0.0f32; n] } else { Vec::new() }),
-            |(mut s, mut cs), t| {
-                let (h, b) = (t % heads, t / heads);
-                let (r0, r1) = (b * BLOCK, ((b + 1) * BLOCK).min(m));
-                s.resize(BLOCK * n, 0.0);
-                let mut run = || -> Result<()> {
-                    let qb = q.rows(r0, r1).cols(h * d, (h + 1) * d);
-                    ctx.gemm(&mut s, n, qb, false, k.cols(h * d, (h + 1) * d), true, scale, false, false)?;
-                    let rows = r1 - r0;
-                    softmax_rows(&mut s[..rows * n], n);
-                    if col_sums {
-                        for row in s[..rows * n].chunks_exact(n) {
-                            for (a, p) in cs.iter_mut().zip(row) {
-                                *a += p;
-                            }
+        .map_init(Vec::new, |s, t| {
+            let (h, b) = (t % heads, t / heads);
+            let (r0, r1) = (b * BLOCK, ((b + 1) * BLOCK).min(m));
+            s.resize(BLOCK * n, 0.0);
+            let mut cs = if col_sums { vec![0.0f32; n] } else { Vec::new() };
+            let mut run = || -> Result<()> {
+                let qb = q.rows(r0, r1).cols(h * d, (h + 1) * d);
+                ctx.gemm(s, n, qb, false, k.cols(h * d, (h + 1) * d), true, scale, false, false)?;
+                let rows = r1 - r0;
+                softmax_rows(&mut s[..rows * n], n);
+                if col_sums {
+                    for row in s[..rows * n].chunks_exact(n) {
+                        for (a, p) in cs.iter_mut().zip(row) {
+                            *a += p;
                         }
                     }
-                    let probs = View { data: &s, rows, cols: n, stride: n };
-                    // SAFETY: task (h, b) alone writes rows r0..r1, columns h·d..(h+1)·d.
-                    unsafe { ctx.gemm_ptr(dst.at(r0 * c + h * d), c, probs, false, v.cols(h * d, (h + 1) * d), false, 1.0, false, false) }
-                };
-                record(&err, run());
-                (s, cs)
-            },
-        )
-        .map(|(_, cs)| cs)
-        .reduce(Vec::new, |a, b| if a.is_empty() { b } else { a.iter().zip(&b).map(|(x, y)| x + y).collect() });
+                }
+                let probs = View { data: s, rows, cols: n, stride: n };
+                // SAFETY: task (h, b) alone writes rows r0..r1, columns h·d..(h+1)·d.
+                unsafe { ctx.gemm_ptr(dst.at(r0 * c + h * d), c, probs, false, v.cols(h * d, (h + 1) * d), false, 1.0, false, false) }
+            };
+            record(&err, run());
+            cs
+        })
+        .collect();
+    let mut sums = vec![0.0f32; if col_sums { n } else { 0 }];
+    for cs in &per_task {
+        for (a, p) in sums.iter_mut().zip(cs) {
+            *a += p;
+        }
+    }
     take(err)?;
-    Ok((out, col_sums.then(|| if sums.is_empty() { vec![0.0; n] } else { sums })))
+    Ok((out, col_sums.then_some(sums)))
 }
 
 /// Cross-attention with attention-weight sharing (SPEC §5): per head the scores

@@ -6,8 +6,8 @@ use rayon::prelude::*;
 pub use crate::kernels::Matrix;
 use crate::kernels::{axpy, dot, exp_row, logsumexp_plus};
 
-/// Rows handed to one rayon task at a time.
-const MIN_ROWS: usize = 16;
+/// Rows per parallel task of the scaling-domain sweep (fixed, for reproducible sums).
+const TASK_ROWS: usize = 32;
 
 /// The couplings' dustbins and SPEC §8's marginals: fills the last row and column of
 /// `z` with `bin_score`; returns `(norm, log_mu, log_nu)`.
@@ -61,27 +61,29 @@ pub fn log_optimal_transport_inplace(z: &mut Matrix, bin_score: f32, iters: usiz
     rebuild(&mut k, &f, &g);
     let mut a = vec![1.0f32; r];
     let mut b = vec![1.0f32; c];
-    let rows_per_task = r.div_ceil(rayon::current_num_threads().max(1) * 4).max(MIN_ROWS);
+    // Kᵀa is summed per block of TASK_ROWS rows, then over the blocks in order: the same
+    // additions in the same order whatever the thread count, so results are reproducible.
+    let blocks = r.div_ceil(TASK_ROWS);
+    let mut partial = vec![0.0f32; blocks * c];
+    let mut kta = vec![0.0f32; c];
     for it in 0..iters {
         // a_i = μ_i / (K b)_i, and Kᵀa accumulated in the same sweep.
-        let kta = a
-            .par_chunks_mut(rows_per_task)
-            .zip(k.par_chunks(rows_per_task * c))
-            .zip(mu.par_chunks(rows_per_task))
-            .fold(
-                || vec![0.0f32; c],
-                |mut acc, ((ac, kc), muc)| {
-                    for ((ai, kr), mui) in ac.iter_mut().zip(kc.chunks_exact(c)).zip(muc) {
-                        *ai = mui / dot(kr, &b);
-                        axpy(*ai, kr, &mut acc);
-                    }
-                    acc
-                },
-            )
-            .reduce(|| vec![0.0f32; c], |mut x, y| {
-                axpy(1.0, &y, &mut x);
-                x
+        partial
+            .par_chunks_mut(c)
+            .zip(a.par_chunks_mut(TASK_ROWS))
+            .zip(k.par_chunks(TASK_ROWS * c))
+            .zip(mu.par_chunks(TASK_ROWS))
+            .for_each(|(((acc, ac), kc), muc)| {
+                acc.fill(0.0);
+                for ((ai, kr), mui) in ac.iter_mut().zip(kc.chunks_exact(c)).zip(muc) {
+                    *ai = mui / dot(kr, &b);
+                    axpy(*ai, kr, acc);
+                }
             });
+        kta.fill(0.0);
+        for acc in partial.chunks_exact(c) {
+            axpy(1.0, acc, &mut kta);
+        }
         for ((bj, nuj), s) in b.iter_mut().zip(&nu).zip(&kta) {
             *bj = nuj / s;
         }
