@@ -128,6 +128,24 @@ def test_extract_bad_input(images, tmp_path):
     (broken / "x.jpg").write_bytes(b"not a jpeg")
     with pytest.raises(ValueError, match="x.jpg"):
         sfm.extract(broken, tmp_path / "g.h5", progress=False)
+    # one unreadable file among good ones: a warning naming it, the others extracted
+    shutil.copy(SAMPLE / "coffee_0.jpg", broken / "good.jpg")
+    with pytest.warns(UserWarning, match="x.jpg"):
+        sfm.extract(broken, tmp_path / "h.h5", progress=False)
+    assert sfm_io.list_names(tmp_path / "h.h5") == ["good.jpg"]
+    # a corrupt or foreign h5 file is named
+    bad_h5 = tmp_path / "corrupt.h5"
+    bad_h5.write_bytes(b"\x00" * 100)
+    with pytest.raises(ValueError, match="corrupt.h5: not a readable HDF5 file"):
+        sfm.extract(images, bad_h5, progress=False)
+    with pytest.raises(ValueError, match="corrupt.h5: not a readable HDF5 file"):
+        sfm.match_pairs(bad_h5, [("a.jpg", "b.jpg")], tmp_path / "m.h5", progress=False)
+    foreign = tmp_path / "foreign.h5"
+    with h5py.File(foreign, "w") as fd:
+        for n in ("a.jpg", "b.jpg"):
+            fd.create_dataset(f"{n}/keypoints", data=np.zeros((3, 2), np.float32))
+    with pytest.raises(ValueError, match="has no 'descriptors'"):
+        sfm.match_pairs(foreign, [("a.jpg", "b.jpg")], tmp_path / "m2.h5", progress=False)
 
 
 def test_match_pairs_equals_match_dicts(features, tmp_path):
@@ -169,6 +187,22 @@ def test_match_pairs_resumes_and_checks(features, tmp_path, monkeypatch):
         sfm.match_pairs(tmp_path / "none.h5", [("a.jpg", "b.jpg")], tmp_path / "z.h5", progress=False)
 
 
+def test_reconstruct_bad_input(images, tmp_path):
+    pytest.importorskip("pycolmap", reason="reconstruct needs pycolmap (pip install '.[sfm]')")
+    one = tmp_path / "one"
+    one.mkdir()
+    shutil.copy(SAMPLE / "coffee_0.jpg", one / "a.jpg")
+    with pytest.raises(ValueError, match="at least 2 images"):
+        sfm.reconstruct(one, tmp_path / "o1", progress=False)
+    pairs = sfm.write_pairs([("a.jpg", "missing.jpg")], tmp_path / "p.txt")
+    with pytest.raises(ValueError, match="missing.jpg"):
+        sfm.reconstruct(images, tmp_path / "o2", pairs=pairs, progress=False)
+    with pytest.raises(ValueError, match="camera_mode"):
+        sfm.reconstruct(images, tmp_path / "o3", camera_mode="fisheye", progress=False)
+    with pytest.raises(ValueError, match="sequential:N"):
+        sfm.reconstruct(images, tmp_path / "o4", pairs="sequential:0", progress=False)
+
+
 def test_cli_pairs_and_errors(images, tmp_path):
     run = [sys.executable, "-m", "paraformer.sfm"]
     r = subprocess.run(run + ["pairs", str(images), str(tmp_path / "p.txt"), "--pairs", "sequential:1"],
@@ -195,9 +229,16 @@ def _strecha(tmp_path: Path, n: int) -> Path:
 def test_reconstruct_strecha(tmp_path):
     pycolmap = pytest.importorskip("pycolmap", reason="reconstruct needs pycolmap (pip install '.[sfm]')")
     images = _strecha(tmp_path, 5)
+    cv2 = pytest.importorskip("cv2", reason="the mixed-size case needs opencv")
+    # mixed image sizes: one image at 3/4 size, and one unreadable file to be skipped
+    small = cv2.imread(str(images / "0004.jpg"))
+    cv2.imwrite(str(images / "0004.jpg"), cv2.resize(small, None, fx=0.75, fy=0.75, interpolation=cv2.INTER_AREA))
+    (images / "zz_corrupt.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
     out = tmp_path / "out"
-    rec = sfm.reconstruct(images, out, max_keypoints=1024, progress=False)
+    with pytest.warns(UserWarning, match="zz_corrupt.jpg"):
+        rec = sfm.reconstruct(images, out, max_keypoints=1024, progress=False)
     assert rec is not None and rec.num_reg_images() >= 4 and rec.num_points3D() > 200
+    assert len({c.width for c in rec.cameras.values()}) == 2  # one camera per image size
     for f in ("features.h5", "pairs.txt", "matches.h5", "database.db", "summary.json", "sparse/0/images.bin"):
         assert (out / f).exists(), f
     back = pycolmap.Reconstruction(str(out / "sparse" / "0"))

@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import os
+import warnings
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .io import PathLike, _h5py, list_names, write_features
+from .io import PathLike, open_h5, list_names, write_features
 from .progress import bar
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".pgm", ".ppm", ".pnm", ".pbm", ".bmp", ".tif", ".tiff", ".webp"}
@@ -53,7 +54,8 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
     """XFeat keypoints and descriptors of every image into hloc's ``features.h5`` layout.
 
     Images already in the file are skipped unless ``overwrite`` (an interrupted run resumes);
-    each image is written as soon as it is done.
+    each image is written as soon as it is done. An unreadable image is skipped with a
+    warning naming it; ValueError when no image at all can be read.
 
     Args:
         image_dir: the folder of images (searched recursively).
@@ -91,7 +93,6 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
         raise ValueError(f"backend: expected 'local' or 'ray', got {backend!r}")
     if ray_options:
         raise TypeError(f"extract: options {sorted(ray_options)} are for backend='ray'")
-    h5py = _h5py()
     workers = num_workers or 2
     if workers < 1:
         raise ValueError(f"num_workers: expected a positive int, got {num_workers!r}")
@@ -100,8 +101,8 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
         return paraformer.extract(os.fspath(image_dir / name), max_keypoints=max_keypoints)
 
     with ThreadPoolExecutor(workers) as pool, bar(len(todo), "extract", "img", progress) as pb, \
-            h5py.File(str(features_path), "a", libver="latest") as fd:
-        queue, pending = list(reversed(todo)), {}
+            open_h5(features_path, "a") as fd:
+        queue, pending, failed = list(reversed(todo)), {}, []
         while queue or pending:
             while queue and len(pending) < 2 * workers:
                 name = queue.pop()
@@ -111,11 +112,16 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
                 name = pending.pop(fut)
                 try:
                     feats = fut.result()
-                except Exception as e:
-                    for f in pending:
-                        f.cancel()
-                    raise _named(e, image_dir / name) from e
+                except (ValueError, OSError) as e:
+                    # One unreadable file must not stop a collection: warn, skip, go on.
+                    failed.append(name)
+                    warnings.warn(f"skipping {_named(e, image_dir / name)}", stacklevel=2)
+                    pb.update(1)
+                    continue
                 write_features(fd, name, feats, as_half)
                 fd.flush()
                 pb.update(1)
+    if len(failed) == len(todo) and not done:
+        raise ValueError(f"image_dir: none of the {len(todo)} image(s) under {image_dir} could be read "
+                         f"(first: {failed[0]})")
     return features_path

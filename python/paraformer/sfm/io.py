@@ -25,6 +25,17 @@ def _h5py():
     return h5py
 
 
+def open_h5(path: PathLike, mode: str = "r"):
+    """``h5py.File`` that names the file when it is not HDF5 (corrupt, truncated, foreign)."""
+    h5py = _h5py()
+    try:
+        return h5py.File(str(path), mode, libver="latest")
+    except OSError as e:
+        if not Path(path).exists() and mode == "r":
+            raise FileNotFoundError(f"no such file: {path}") from None
+        raise ValueError(f"{path}: not a readable HDF5 file ({e})") from None
+
+
 def names_to_pair(name0: str, name1: str, separator: str = "/") -> str:
     """hloc's group name of a pair in ``matches.h5``."""
     return separator.join((name0.replace("/", "-"), name1.replace("/", "-")))
@@ -82,7 +93,7 @@ def list_names(path: PathLike) -> list[str]:
     names: list[str] = []
     if not Path(path).exists():
         return names
-    with h5py.File(str(path), "r", libver="latest") as fd:
+    with open_h5(path) as fd:
         def visit(name: str, obj) -> None:
             if isinstance(obj, h5py.Dataset) and name.endswith("/keypoints"):
                 names.append(name[: -len("/keypoints")])

@@ -9,7 +9,7 @@ from typing import Any, Callable, Optional, Sequence, Union
 
 import numpy as np
 
-from .io import PathLike, _h5py, has_pair, read_features, read_pairs, write_matches
+from .io import PathLike, open_h5, has_pair, read_features, read_pairs, write_matches
 from .progress import bar
 
 Pairs = Union[PathLike, Sequence[Sequence[str]]]
@@ -125,8 +125,7 @@ def pending_pairs(pairs: Sequence[tuple[str, str]], matches_path: Path, overwrit
     by another matcher (its ``paraformer_matcher`` attribute) is an error unless ``overwrite``."""
     if overwrite or not matches_path.exists():
         return list(pairs)
-    h5py = _h5py()
-    with h5py.File(str(matches_path), "r", libver="latest") as fd:
+    with open_h5(matches_path, "r") as fd:
         old = fd.attrs.get("paraformer_matcher")
         if tag is not None and old is not None and old != tag:
             raise ValueError(f"matches_path: {matches_path} holds matches of {old!r}, not {tag!r}; "
@@ -173,8 +172,7 @@ def match_pairs(features_path: PathLike, pairs: Pairs, matches_path: PathLike, *
     tag = matcher_tag(matcher if isinstance(matcher, (str, os.PathLike)) else model)
     todo = pending_pairs(resolve_pairs(pairs), matches_path, overwrite, tag)
     matches_path.parent.mkdir(parents=True, exist_ok=True)
-    h5py = _h5py()
-    with h5py.File(str(features_path), "r", libver="latest") as ffd:
+    with open_h5(features_path, "r") as ffd:
         check_features(ffd, todo, features_path)
     if not todo:
         return matches_path
@@ -187,8 +185,8 @@ def match_pairs(features_path: PathLike, pairs: Pairs, matches_path: PathLike, *
         raise ValueError(f"backend: expected 'local' or 'ray', got {backend!r}")
     if ray_options:
         raise TypeError(f"match_pairs: options {sorted(ray_options)} are for backend='ray'")
-    with h5py.File(str(features_path), "r", libver="latest") as ffd, \
-            h5py.File(str(matches_path), "a", libver="latest") as mfd:
+    with open_h5(features_path, "r") as ffd, \
+            open_h5(matches_path, "a") as mfd:
         mfd.attrs["paraformer_matcher"] = tag
         run_batches(todo, FeatureCache(ffd), lambda chunk: model.match_many(chunk, num_threads=num_threads),
                     mfd, batch, progress)

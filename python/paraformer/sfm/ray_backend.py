@@ -20,7 +20,7 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
-from .io import _h5py, read_features, write_features, write_matches
+from .io import open_h5, read_features, write_features, write_matches
 from .progress import bar
 
 
@@ -126,13 +126,12 @@ def extract_ray(image_dir: Path, features_path: Path, names: Sequence[str], *, m
     ray = init(address)
     _quiet_data(ray, progress)
     workers, threads = _pool_options(ray, num_workers, threads_per_worker)
-    h5py = _h5py()
     ds = ray.data.from_items([{"name": n} for n in names], override_num_blocks=max(1, min(len(names), 4 * workers)))
     ds = ds.map_batches(XFeatWorker, fn_constructor_kwargs={"image_dir": os.fspath(image_dir),
                                                             "max_keypoints": max_keypoints},
                         batch_size=batch, batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=workers),
                         **_remote_args(threads))
-    with h5py.File(str(features_path), "a", libver="latest") as fd:
+    with open_h5(features_path, "a") as fd:
         def handle(b: dict) -> int:
             for i, name in enumerate(b["name"]):
                 feats = {"keypoints": np.frombuffer(b["keypoints"][i], "<f4").reshape(-1, 2),
@@ -163,9 +162,8 @@ def match_pairs_ray(features_path: Path, pairs: Sequence[tuple[str, str]], match
     ray = init(address)
     _quiet_data(ray, progress)
     workers, threads = _pool_options(ray, num_workers, threads_per_worker)
-    h5py = _h5py()
     names = sorted({n for p in pairs for n in p})
-    with h5py.File(str(features_path), "r", libver="latest") as ffd:
+    with open_h5(features_path, "r") as ffd:
         features = {n: read_features(ffd, n) for n in names}
     ref = ray.put(features)
     del features
@@ -178,7 +176,7 @@ def match_pairs_ray(features_path: Path, pairs: Sequence[tuple[str, str]], match
                         batch_size=batch, batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=workers),
                         **_remote_args(threads))
     done = 0
-    with h5py.File(str(matches_path), "a", libver="latest") as mfd:
+    with open_h5(matches_path, "a") as mfd:
         mfd.attrs["paraformer_matcher"] = tag
 
         def handle(b: dict) -> int:

@@ -6,13 +6,14 @@ import json
 import multiprocessing
 import shutil
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
 
 from .extract_features import extract, list_images
-from .io import PathLike, _h5py, read_matches, write_pairs
+from .io import PathLike, list_names, open_h5, read_matches, write_pairs
 from .match_features import match_pairs, resolve_pairs
 from .pairs import pairs_from_spec
 
@@ -45,7 +46,6 @@ def import_into_database(image_dir: Path, database: Path, names: list[str], feat
         COLMAP image id per name.
     """
     pycolmap = _pycolmap()
-    h5py = _h5py()
     if database.exists():
         database.unlink()
     with pycolmap.Database.open(database):
@@ -56,13 +56,13 @@ def import_into_database(image_dir: Path, database: Path, names: list[str], feat
         missing = [n for n in names if n not in ids]
         if missing:
             raise RuntimeError(f"COLMAP could not import {len(missing)} image(s): {missing[:5]}")
-        with h5py.File(str(features_path), "r", libver="latest") as fd:
+        with open_h5(features_path, "r") as fd:
             for name in names:
                 if name not in fd:
                     raise KeyError(f"image {name!r} is not in the features file {features_path}")
                 kpts = np.asarray(fd[name]["keypoints"][()], np.float64) + 0.5
                 db.write_keypoints(ids[name], kpts.astype(np.float32))
-        with h5py.File(str(matches_path), "r", libver="latest") as fd:
+        with open_h5(matches_path, "r") as fd:
             for a, b in pairs:
                 m, s = read_matches(fd, a, b)
                 if min_match_score is not None:
@@ -205,10 +205,17 @@ def reconstruct(image_dir: PathLike, out_dir: PathLike, *, matcher: Any = "paraf
     extract(image_dir, out_dir / "features.h5", max_keypoints=max_keypoints, progress=progress,
             backend=backend, **ray_options)
     times["extract_s"] = time.time() - t
-    pair_list = resolve_pairs(pairs_from_spec(pairs, names))
-    unknown = sorted({n for p in pair_list for n in p} - set(names))
+    unknown = sorted({n for p in pairs_from_spec(pairs, names) for n in p} - set(names))
     if unknown:
         raise ValueError(f"pairs: {len(unknown)} image(s) not under {image_dir}: {unknown[:5]}")
+    readable = set(list_names(out_dir / "features.h5"))
+    skipped = [n for n in names if n not in readable]  # unreadable files, warned about by extract
+    names = [n for n in names if n in readable]
+    if len(names) < 2:
+        raise ValueError(f"image_dir: a reconstruction needs at least 2 readable images, found {len(names)}")
+    pair_list = [p for p in resolve_pairs(pairs_from_spec(pairs, names)) if p[0] in readable and p[1] in readable]
+    if skipped:
+        warnings.warn(f"{len(skipped)} unreadable image(s) left out of the reconstruction: {skipped[:5]}", stacklevel=2)
     write_pairs(pair_list, out_dir / "pairs.txt")
     t = time.time()
     match_pairs(out_dir / "features.h5", pair_list, out_dir / "matches.h5", matcher=matcher, batch=batch,
