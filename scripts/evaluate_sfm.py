@@ -6,9 +6,12 @@ mapper) runs as the reference. Poses are scored against the ground-truth cameras
 every pair of images, the relative rotation error and the angle between relative
 translation directions (scale-free); the pair's error is the larger one, and an image that
 was not registered makes its pairs fail. Reported: registered images, points, track
-length, reprojection error, pose AUC@5/10/20°, seconds per stage.
+length, reprojection error, each camera's rotation and centre error after a similarity
+alignment of the centres to the ground truth (medians), pose AUC@1/2/5° and @5/10/20°,
+seconds per stage.
 
-    python scripts/evaluate_sfm.py --out eval_results/sfm_strecha_entry-P10.json
+    python scripts/evaluate_sfm.py --out eval_results/sfm_strecha_entry-P10.json \
+        --picture eval_results/sfm_strecha_entry-P10.png
 """
 from __future__ import annotations
 
@@ -68,17 +71,84 @@ def pose_errors(est: dict, gt: dict) -> list[float]:
     return errs
 
 
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity ``dst ≈ s·R·src + t`` by least squares (Umeyama 1991)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    u, d, vt = np.linalg.svd(b.T @ a / len(src))
+    e = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        e[2, 2] = -1
+    r = u @ e @ vt
+    s = np.trace(np.diag(d) @ e) / (a ** 2).sum(1).mean()
+    return float(s), r, mu_d - s * r @ mu_s
+
+
+def camera_errors(est: dict, gt: dict) -> tuple[list[float], list[float]]:
+    """Per registered camera: rotation error (deg) and centre error (GT units) after the
+    similarity that best aligns the estimated centres to the ground-truth ones."""
+    names = sorted(n for n in est if n in gt)
+    if len(names) < 3:
+        return [], []
+    centre = lambda p: -p[0].T @ p[1]  # noqa: E731
+    s, r, t = umeyama(np.array([centre(est[n]) for n in names]), np.array([centre(gt[n]) for n in names]))
+    rot, cen = [], []
+    for n in names:
+        r_est = est[n][0] @ r.T  # world' → camera after the alignment
+        c = s * r @ centre(est[n]) + t
+        rot.append(float(np.degrees(np.arccos(np.clip((np.trace(gt[n][0].T @ r_est) - 1) / 2, -1, 1)))))
+        cen.append(float(np.linalg.norm(c - centre(gt[n]))))
+    return rot, cen
+
+
 def summarize(rec, gt: dict, seconds: dict) -> dict:
     from paraformer import geometry
 
     if rec is None:
-        return {"registered_images": 0, "pose_auc@5/10/20": [0.0, 0.0, 0.0], "seconds": seconds}
-    errs = pose_errors(poses_of(rec), gt)
+        return {"registered_images": 0, "pose_auc@1/2/5": [0.0, 0.0, 0.0], "seconds": seconds}
+    est = poses_of(rec)
+    errs = pose_errors(est, gt)
+    rot, cen = camera_errors(est, gt)
     return {"registered_images": rec.num_reg_images(), "points3D": rec.num_points3D(),
             "mean_track_length": round(rec.compute_mean_track_length(), 3),
             "mean_reprojection_error_px": round(rec.compute_mean_reprojection_error(), 3),
+            "median_rotation_error_deg": round(float(np.median(rot)), 4) if rot else None,
+            "median_centre_error_m": round(float(np.median(cen)), 4) if cen else None,
+            "pose_auc@1/2/5": [round(100 * a, 1) for a in geometry.pose_auc(errs, (1, 2, 5))],
             "pose_auc@5/10/20": [round(100 * a, 1) for a in geometry.pose_auc(errs, (5, 10, 20))],
             "median_pair_error_deg": round(float(np.median(errs)), 3), "seconds": seconds}
+
+
+def draw(rec, gt: dict, path: Path, title: str) -> None:
+    """Top view of a reconstruction aligned to the ground truth: points, estimated and true
+    camera centres."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    est = poses_of(rec)
+    names = sorted(n for n in est if n in gt)
+    centre = lambda p: -p[0].T @ p[1]  # noqa: E731
+    s, r, t = umeyama(np.array([centre(est[n]) for n in names]), np.array([centre(gt[n]) for n in names]))
+    pts = np.array([p.xyz for p in rec.points3D.values()])
+    pts = (s * (r @ pts.T)).T + t
+    ce = np.array([s * r @ centre(est[n]) + t for n in names])
+    cg = np.array([centre(gt[n]) for n in names])
+    # view from above the cameras: project on the plane of the two main axes of the centres
+    # and the points (the ground plane for a facade scene)
+    axes = np.linalg.svd(np.vstack([pts, cg]) - np.vstack([pts, cg]).mean(0))[2][:2]
+    fig, ax = plt.subplots(figsize=(7, 5), dpi=110)
+    p2, e2, g2 = pts @ axes.T, ce @ axes.T, cg @ axes.T
+    ax.scatter(p2[:, 0], p2[:, 1], s=0.4, c="0.35", label=f"{len(pts)} points")
+    ax.scatter(g2[:, 0], g2[:, 1], s=60, facecolors="none", edgecolors="tab:green", label="true cameras")
+    ax.scatter(e2[:, 0], e2[:, 1], s=12, c="tab:red", label="our cameras (aligned)")
+    ax.set_aspect("equal")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def run_colmap_sift(images: Path, work: Path) -> tuple[object, dict]:
@@ -106,6 +176,7 @@ def main() -> None:
     ap.add_argument("--max-keypoints", type=int, default=2048)
     ap.add_argument("--no-colmap-sift", action="store_true", help="skip COLMAP's SIFT reference")
     ap.add_argument("--out", type=Path, default=None, help="JSON to write")
+    ap.add_argument("--picture", type=Path, default=None, help="PNG: top view of the first matcher's model")
     a = ap.parse_args()
 
     import pycolmap
@@ -122,6 +193,8 @@ def main() -> None:
             s = json.loads((out / "summary.json").read_text())
             rec = pycolmap.Reconstruction(str(out / "sparse" / "0")) if (out / "sparse" / "0").exists() else None
             results["rows"][f"XFeat + {name}"] = summarize(rec, gt, s["seconds"])
+            if a.picture and rec is not None and name == a.matchers.split(",")[0]:
+                draw(rec, gt, a.picture, f"{a.scene.name}: XFeat + {name}, {rec.num_reg_images()} cameras")
             print(name, json.dumps(results["rows"][f"XFeat + {name}"]), flush=True)
         if not a.no_colmap_sift:
             work = Path(tmp) / "colmap_sift"
