@@ -21,7 +21,7 @@ from ._paraformer import pretrained_names
 from . import features, geometry
 
 __all__ = ["Matcher", "ParaformerError", "WeightsError", "extract", "features", "flops", "geometry",
-           "pretrained_names", "__version__"]
+           "match_images", "pretrained_names", "__version__"]
 
 ArrayLike = Any
 Output = dict[str, np.ndarray]
@@ -300,3 +300,6 @@ def flops(config_or_matcher: Union[Matcher, Mapping[str, Any]], m: int, n: int) 
         if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0:
             raise ValueError(f"{name}: expected a non-negative int, got {v!r}")
     return sum(_flops(json.dumps(cfg), int(m), int(n)))
+
+
+from .pipeline import match_images  # noqa: E402  (uses Matcher and extract defined above)

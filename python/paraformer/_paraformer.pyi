@@ -5,7 +5,7 @@ from typing import Optional, Union, final
 __all__ = [
     "_Matcher", "flops", "find_homography", "find_fundamental", "find_relative_pose", "pose_auc",
     "pose_auc_approx", "homography_corner_error", "gt_matches_from_homography", "match_baseline",
-    "pretrained_names", "extract", "extract_file",
+    "pretrained_names", "extract", "extract_file", "load_image",
     "ParaformerError", "WeightsError", "__version__",
 ]
 
@@ -64,3 +64,4 @@ _Extracted = tuple[bytes, bytes, bytes, float, float]
 
 def extract(pixels: bytes, height: int, width: int, channels: int, top_k: int) -> _Extracted: ...
 def extract_file(path: Union[str, os.PathLike[str]], top_k: int) -> _Extracted: ...
+def load_image(path: Union[str, os.PathLike[str]]) -> tuple[bytes, int, int]: ...

@@ -562,6 +562,20 @@ fn extract_file(py: Python<'_>, path: PathBuf, top_k: usize) -> PyResult<Extract
     py.detach(|| xf.detect_and_compute(&GrayImage::open(&path)?, Some(top_k))).map(extracted).map_err(to_py_err)
 }
 
+/// Decodes an image file to grey values as XFeat sees it (colour averaged over R, G, B).
+///
+/// Args:
+///     path: the image file (PNG, JPEG, PNM, BMP, TIFF, WebP).
+/// Returns:
+///     `(grey float32 little-endian bytes, width, height)`, values in 0–255.
+#[pyfunction]
+#[pyo3(signature = (path,))]
+fn load_image(py: Python<'_>, path: PathBuf) -> PyResult<(Vec<u8>, usize, usize)> {
+    py.detach(|| GrayImage::open(&path))
+        .map(|img| (img.data.iter().flat_map(|v| v.to_le_bytes()).collect(), img.width, img.height))
+        .map_err(to_py_err)
+}
+
 /// Multiply-accumulates of one forward pass (SPEC §10).
 ///
 /// Args:
@@ -595,6 +609,7 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(pretrained_names, m)?,
         wrap_pyfunction!(extract, m)?,
         wrap_pyfunction!(extract_file, m)?,
+        wrap_pyfunction!(load_image, m)?,
     ] {
         m.add_function(f)?;
     }

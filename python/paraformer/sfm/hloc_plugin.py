@@ -44,7 +44,7 @@ def register() -> type:
     except ImportError as e:
         raise ImportError(f"the hloc plug-in needs torch and hloc installed: {e}") from None
 
-    from .match_features import load_matcher
+    from ..pipeline import load_matcher
 
     class Paraformer(BaseModel):
         """ParaFormer / ParaFormer-U (Rust core) as an hloc matcher."""

@@ -7,63 +7,12 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence, Union
 
-import numpy as np
 
 from .io import PathLike, open_h5, has_pair, read_features, read_pairs, write_matches
+from ..pipeline import Baseline, load_matcher
 from .progress import bar
 
 Pairs = Union[PathLike, Sequence[Sequence[str]]]
-BASELINES = ("mnn", "nn", "ratio")
-
-
-class _Baseline:
-    """Descriptor matching without a network (``mnn``, ``nn``, ``ratio[:R]``), with the
-    ``match_many`` interface; scores are the descriptor similarity mapped to [0, 1]."""
-
-    def __init__(self, spec: str):
-        method, _, ratio = spec.partition(":")
-        if method not in BASELINES or (ratio and method != "ratio"):
-            raise ValueError(f"matcher: unknown baseline {spec!r}")
-        try:
-            self.ratio = float(ratio) if ratio else 0.8
-        except ValueError:
-            raise ValueError(f"matcher: bad ratio in {spec!r}") from None
-        self.method = method
-
-    def match_many(self, pairs, num_threads=None) -> list[dict]:
-        from ..geometry import match_baseline
-
-        out = []
-        for f0, f1 in pairs:
-            d0, d1 = f0["descriptors"], f1["descriptors"]
-            m0 = np.asarray(match_baseline(d0, d1, self.method, self.ratio), np.int64)
-            s0 = np.zeros(len(m0), np.float32)
-            ok = m0 >= 0
-            s0[ok] = (np.einsum("ij,ij->i", d0[ok], d1[m0[ok]]) + 1) / 2
-            out.append({"matches0": m0, "matching_scores0": s0})
-        return out
-
-
-def load_matcher(matcher: Any) -> Any:
-    """A matcher from a pretrained name, a baseline (``mnn``, ``nn``, ``ratio[:R]``), a
-    weights file or a ``paraformer.Matcher``."""
-    import paraformer
-
-    if isinstance(matcher, (paraformer.Matcher, _Baseline)):
-        return matcher
-    if not isinstance(matcher, (str, os.PathLike)):
-        raise ValueError(f"matcher: expected a name, a weights file or a Matcher, got {type(matcher).__name__}")
-    spec = os.fspath(matcher)
-    if spec in paraformer.pretrained_names():
-        return paraformer.Matcher.pretrained(spec)
-    if spec.partition(":")[0] in BASELINES:
-        return _Baseline(spec)
-    if Path(spec).is_file():
-        return paraformer.Matcher.from_file(spec)
-    raise ValueError(f"matcher: {spec!r} is not a pretrained name ({', '.join(paraformer.pretrained_names())}), "
-                     f"a baseline ({', '.join(BASELINES)}) or a weights file")
-
-
 def unique_pairs(pairs: Sequence[Sequence[str]]) -> list[tuple[str, str]]:
     """Pairs in order without repeats; (b, a) counts as a repeat of (a, b), as in hloc."""
     seen, out = set(), []
@@ -114,7 +63,7 @@ def matcher_tag(matcher: Any) -> str:
 
     if isinstance(matcher, paraformer.Matcher):
         return "config:" + json.dumps(matcher.config, sort_keys=True)
-    if isinstance(matcher, _Baseline):
+    if isinstance(matcher, Baseline):
         return f"{matcher.method}:{matcher.ratio}" if matcher.method == "ratio" else matcher.method
     return os.fspath(matcher)
 

@@ -82,7 +82,7 @@ class MatchWorker:
     def __init__(self, matcher: Any, features_ref: list, pairs: Sequence[tuple[str, str]], threads: int):
         import ray
 
-        from .match_features import load_matcher
+        from ..pipeline import load_matcher
 
         self.model = load_matcher(matcher)
         self.features = ray.get(features_ref[0])  # once per actor
