@@ -13,15 +13,16 @@ from typing import Any, Mapping, Sequence, Union
 
 import numpy as np
 
-from ._paraformer import ParaformerError, WeightsError, _Matcher, __version__
+from ._paraformer import ParaformerError, ResourceError, WeightsError, _Matcher, __version__
+from ._paraformer import memory_limit, set_memory_limit
 from ._paraformer import extract as _extract
 from ._paraformer import extract_file as _extract_file
 from ._paraformer import flops as _flops
 from ._paraformer import pretrained_names
 from . import features, geometry
 
-__all__ = ["Matcher", "ParaformerError", "WeightsError", "extract", "features", "flops", "geometry",
-           "match_images", "pretrained_names", "__version__"]
+__all__ = ["Matcher", "ParaformerError", "ResourceError", "WeightsError", "extract", "features", "flops",
+           "geometry", "match_images", "memory_limit", "pretrained_names", "set_memory_limit", "__version__"]
 
 ArrayLike = Any
 Output = dict[str, np.ndarray]
@@ -223,6 +224,21 @@ class Matcher:
         """
         f0, f1 = _feature_dict(feats0, 0, self._dim), _feature_dict(feats1, 1, self._dim)
         return _unpack(self._inner.match_pair(f0, f1, bool(return_log_assignment)))
+
+    def memory_needed(self, m: int, n: int) -> int:
+        """Bytes a match of ``m`` × ``n`` keypoints needs at its peak; a call needing more than
+        ``paraformer.memory_limit()`` raises ``paraformer.ResourceError`` before allocating.
+
+        Args:
+            m: keypoints of image 0.
+            n: keypoints of image 1.
+        Returns:
+            The estimate in bytes.
+        """
+        for name, v in (("m", m), ("n", n)):
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0:
+                raise ValueError(f"{name}: expected a non-negative int, got {v!r}")
+        return int(self._inner.memory_needed(int(m), int(n)))
 
     def match_many(self, pairs: Sequence[tuple[Mapping[str, Any], Mapping[str, Any]]], *,
                    return_log_assignment: bool = False, num_threads: int | None = None) -> list[Output]:

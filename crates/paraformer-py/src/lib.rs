@@ -26,6 +26,17 @@ create_exception!(
     "A weights file is not valid safetensors, has a bad config, or does not match its config."
 );
 
+/// `paraformer.ResourceError`: a `ParaformerError` and a `MemoryError` (two bases, so
+/// it is built with `type(...)` when the module loads).
+static RESOURCE_ERROR: pyo3::sync::PyOnceLock<Py<pyo3::types::PyType>> = pyo3::sync::PyOnceLock::new();
+
+fn resource_error(msg: String) -> PyErr {
+    Python::attach(|py| match RESOURCE_ERROR.get(py) {
+        Some(t) => PyErr::from_type(t.bind(py).clone(), msg),
+        None => pyo3::exceptions::PyMemoryError::new_err(msg),
+    })
+}
+
 /// The Python argument name for a core argument name (`keypoints0` → `kpts0`).
 fn python_name(arg: &str) -> String {
     for (core, py) in [("keypoints", "kpts"), ("descriptors", "desc"), ("image_size", "size")] {
@@ -45,6 +56,7 @@ fn to_py_err(e: Error) -> PyErr {
         Error::InvalidInput { argument, reason } => {
             PyValueError::new_err(format!("{}: {reason}", python_name(&argument)))
         }
+        e @ Error::Resource { .. } => resource_error(e.to_string()),
         e if e.is_weights_error() => WeightsError::new_err(e.to_string()),
         e => ParaformerError::new_err(e.to_string()),
     }
@@ -183,7 +195,7 @@ impl PyMatcher {
         return_log_assignment: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
         let (f0, f1) = (features0.to_features(0)?, features1.to_features(1)?);
-        let opts = MatchOptions { return_log_assignment };
+        let opts = MatchOptions { return_log_assignment, ..Default::default() };
         let out = py.detach(|| self.inner.match_pair_with(&f0, &f1, opts)).map_err(to_py_err)?;
         output_dict(py, &out)
     }
@@ -215,6 +227,18 @@ impl PyMatcher {
         Ok(d)
     }
 
+    /// Bytes a match of `m` × `n` keypoints needs at its peak (checked against the limit).
+    ///
+    /// Args:
+    ///     m: keypoints of image 0.
+    ///     n: keypoints of image 1.
+    /// Returns:
+    ///     The estimate in bytes.
+    #[pyo3(signature = (m, n))]
+    fn memory_needed(&self, m: usize, n: usize) -> u64 {
+        self.inner.memory_needed(m, n)
+    }
+
     /// Matches many pairs in parallel on `num_threads` threads (default: all cores).
     ///
     /// Args:
@@ -239,10 +263,18 @@ impl PyMatcher {
                 Ok((a.to_features(0).map_err(wrap)?, b.to_features(1).map_err(wrap)?))
             })
             .collect::<PyResult<Vec<_>>>()?;
-        let opts = MatchOptions { return_log_assignment };
+        let opts = MatchOptions { return_log_assignment, ..Default::default() };
         let threads = num_threads
             .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1))
             .clamp(1, feats.len().max(1));
+        // Pairs run side by side only as far as their memory fits the limit together.
+        let limit = paraformer::memory::memory_limit();
+        let largest = feats
+            .iter()
+            .map(|(a, b)| paraformer::memory::match_bytes(self.inner.config(), a.len(), b.len(), 1))
+            .max()
+            .unwrap_or(0);
+        let threads = threads.min(usize::try_from(limit / largest.max(1)).unwrap_or(usize::MAX).max(1));
         let results = py.detach(|| {
             let next = AtomicUsize::new(0);
             let mut slots: Vec<Option<paraformer::Result<MatchOutput>>> = (0..feats.len()).map(|_| None).collect();
@@ -277,9 +309,11 @@ impl PyMatcher {
             .map(|(i, r)| match r {
                 Some(Ok(out)) => output_dict(py, &out),
                 Some(Err(e)) => {
+                    let resource = matches!(e, Error::Resource { .. });
                     let err = to_py_err(e);
                     let msg = format!("pair {i}: {}", err.value(py));
                     Err(match () {
+                        _ if resource => resource_error(msg),
                         _ if err.is_instance_of::<PyValueError>(py) => PyValueError::new_err(msg),
                         _ => ParaformerError::new_err(msg),
                     })
@@ -562,6 +596,26 @@ fn extract_file(py: Python<'_>, path: PathBuf, top_k: usize) -> PyResult<Extract
     py.detach(|| xf.detect_and_compute(&GrayImage::open(&path)?, Some(top_k))).map(extracted).map_err(to_py_err)
 }
 
+/// Sets the process-wide memory limit of matching and extraction.
+///
+/// Args:
+///     bytes: the limit in bytes, or None for the default (90% of the available memory).
+#[pyfunction]
+#[pyo3(signature = (bytes,))]
+fn set_memory_limit(bytes: Option<u64>) {
+    paraformer::memory::set_memory_limit(bytes);
+}
+
+/// The memory limit in force, in bytes.
+///
+/// Returns:
+///     The limit set, else 90% of the memory available now.
+#[pyfunction]
+#[pyo3(signature = ())]
+fn memory_limit() -> u64 {
+    paraformer::memory::memory_limit()
+}
+
 /// Decodes an image file to grey values as XFeat sees it (colour averaged over R, G, B).
 ///
 /// Args:
@@ -610,10 +664,20 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(extract, m)?,
         wrap_pyfunction!(extract_file, m)?,
         wrap_pyfunction!(load_image, m)?,
+        wrap_pyfunction!(set_memory_limit, m)?,
+        wrap_pyfunction!(memory_limit, m)?,
     ] {
         m.add_function(f)?;
     }
     m.add("ParaformerError", m.py().get_type::<ParaformerError>())?;
+    let py = m.py();
+    let bases = (py.get_type::<ParaformerError>(), py.get_type::<pyo3::exceptions::PyMemoryError>());
+    let attrs = PyDict::new(py);
+    attrs.set_item("__doc__", "A call would need more memory than the limit allows; nothing was allocated.")?;
+    attrs.set_item("__module__", "paraformer")?;
+    let t = py.get_type::<pyo3::types::PyType>().call1(("ResourceError", bases, attrs))?.cast_into::<pyo3::types::PyType>()?;
+    m.add("ResourceError", t.clone())?;
+    let _ = RESOURCE_ERROR.set(py, t.unbind());
     m.add("WeightsError", m.py().get_type::<WeightsError>())?;
     m.add("__version__", paraformer::VERSION)?;
     Ok(())

@@ -71,6 +71,13 @@ impl Default for ParallelSwitches {
     }
 }
 
+/// Largest width (descriptor, model, stage) a config may ask for.
+pub const MAX_WIDTH: usize = 16_384;
+/// Most layers (or layers per stage) a config may ask for.
+pub const MAX_LAYERS: usize = 1_024;
+/// Most Sinkhorn iterations a config may ask for.
+pub const MAX_SINKHORN_ITERATIONS: usize = 100_000;
+
 /// A matcher configuration. Absent JSON fields take the SPEC §9 defaults; unknown
 /// fields are an error.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -229,6 +236,23 @@ impl Config {
     /// Checks that the widths and depths describe a buildable network.
     pub fn validate(&self) -> Result<()> {
         let err = |s: String| Err(Error::Config(s));
+        // Bounds far above any real model, checked before anything is allocated.
+        let too_big = |name: &str, v: usize, max: usize| -> Result<()> {
+            if v > max {
+                return Err(Error::Config(format!("{name} = {v} is beyond the supported maximum of {max}")));
+            }
+            Ok(())
+        };
+        too_big("descriptor_dim", self.descriptor_dim, MAX_WIDTH)?;
+        too_big("dim", self.dim, MAX_WIDTH)?;
+        too_big("num_heads", self.num_heads, MAX_WIDTH)?;
+        too_big("num_layers", self.num_layers, MAX_LAYERS)?;
+        too_big("layer_names (count)", self.layer_names.len(), MAX_LAYERS)?;
+        too_big("sinkhorn_iterations", self.sinkhorn_iterations, MAX_SINKHORN_ITERATIONS)?;
+        for (s, (&c, &d)) in self.stage_dims.iter().zip(&self.stage_depths).enumerate() {
+            too_big(&format!("stage_dims[{s}]"), c, MAX_WIDTH)?;
+            too_big(&format!("stage_depths[{s}]"), d, MAX_LAYERS)?;
+        }
         if self.num_heads == 0 {
             return err("num_heads must be at least 1".into());
         }

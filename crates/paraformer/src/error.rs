@@ -28,6 +28,10 @@ pub enum Error {
     /// A bad argument to `match_pair` (shape, width, NaN/Inf, image size).
     #[error("invalid input `{argument}`: {reason}")]
     InvalidInput { argument: String, reason: String },
+    /// A call would need more memory than the limit allows (see [`crate::memory`]); nothing
+    /// was allocated.
+    #[error("{what} needs {} of memory, more than the limit of {} (fewer keypoints, a smaller image, or a higher limit: paraformer::memory::set_memory_limit, paraformer.set_memory_limit, --memory-limit)", crate::memory::human(*.needed), crate::memory::human(*.limit))]
+    Resource { what: String, needed: u64, limit: u64 },
     /// An internal tensor operation failed.
     #[error("tensor operation failed: {0}")]
     Tensor(#[from] candle_core::Error),
@@ -54,6 +58,7 @@ pub enum TensorProblem {
     Unexpected { name: String, shape: Vec<usize> },
     WrongShape { name: String, expected_shape: Vec<usize>, found_shape: Vec<usize> },
     WrongDtype { name: String, found: String },
+    NonFinite { name: String, index: usize, value: String },
 }
 
 impl TensorProblem {
@@ -63,7 +68,8 @@ impl TensorProblem {
             TensorProblem::Missing { name, .. }
             | TensorProblem::Unexpected { name, .. }
             | TensorProblem::WrongShape { name, .. }
-            | TensorProblem::WrongDtype { name, .. } => name,
+            | TensorProblem::WrongDtype { name, .. }
+            | TensorProblem::NonFinite { name, .. } => name,
         }
     }
 }
@@ -83,6 +89,9 @@ impl fmt::Display for TensorProblem {
             ),
             TensorProblem::WrongDtype { name, found } => {
                 write!(f, "tensor `{name}` has dtype {found}, expected F32, F16 or BF16")
+            }
+            TensorProblem::NonFinite { name, index, value } => {
+                write!(f, "tensor `{name}` holds {value} at flat index {index}; weights must be finite")
             }
         }
     }

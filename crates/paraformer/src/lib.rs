@@ -26,6 +26,7 @@ pub mod geometry;
 pub mod kernels;
 pub mod layers;
 pub mod matcher;
+pub mod memory;
 pub mod mlp;
 pub mod pooling;
 pub mod sinkhorn;

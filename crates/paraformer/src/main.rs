@@ -13,8 +13,35 @@ fn rayon_threads() -> usize {
 #[derive(Parser)]
 #[command(name = "paraformer", version, about = "Sparse feature matching with ParaFormer, ParaFormer-U and SuperGlue")]
 struct Cli {
+    /// Memory limit for matching and extraction, in bytes or with a unit (`8G`, `512M`);
+    /// default: 90% of the memory available. A call needing more fails with an error.
+    #[arg(long, global = true, value_parser = parse_bytes)]
+    memory_limit: Option<u64>,
     #[command(subcommand)]
     command: Command,
+}
+
+/// `8G`, `512M`, `64K` or plain bytes.
+fn parse_bytes(s: &str) -> Result<u64, String> {
+    let t = s.trim();
+    let (num, mult) = match t.char_indices().last() {
+        Some((i, c)) if c.is_ascii_alphabetic() => {
+            let m = match c.to_ascii_uppercase() {
+                'K' => 1u64 << 10,
+                'M' => 1 << 20,
+                'G' => 1 << 30,
+                'T' => 1 << 40,
+                _ => return Err(format!("expected a size such as 8G or 512M (units K, M, G, T), got {s:?}")),
+            };
+            (&t[..i], m)
+        }
+        _ => (t, 1),
+    };
+    let v: f64 = num.trim().parse().map_err(|_| format!("expected a size such as 8G or 512M, got {s:?}"))?;
+    if !v.is_finite() || v <= 0.0 {
+        return Err(format!("expected a positive size, got {s:?}"));
+    }
+    Ok((v * mult as f64) as u64)
 }
 
 #[derive(Subcommand)]
@@ -164,6 +191,9 @@ enum EvalTask {
 const MODELS: [&str; 3] = ["superglue", "paraformer", "paraformer_u"];
 
 fn run(cli: Cli) -> paraformer::Result<()> {
+    if cli.memory_limit.is_some() {
+        paraformer::memory::set_memory_limit(cli.memory_limit);
+    }
     match cli.command {
         Command::Demo { weights, pair } => {
             let matcher = Matcher::from_file(&weights)?;

@@ -202,6 +202,8 @@ impl Network {
 pub struct MatchOptions {
     /// Also return the `[M+1, N+1]` log assignment.
     pub return_log_assignment: bool,
+    /// Memory limit in bytes for this call (`None`: [`crate::memory::memory_limit`]).
+    pub memory_limit: Option<u64>,
 }
 
 /// The result of matching two images.
@@ -296,6 +298,12 @@ impl Matcher {
         &self.config
     }
 
+    /// Bytes a match of `m` × `n` keypoints needs at its peak; a call whose need exceeds
+    /// the memory limit returns [`Error::Resource`] before allocating.
+    pub fn memory_needed(&self, m: usize, n: usize) -> u64 {
+        crate::memory::match_bytes(&self.config, m, n, rayon::current_num_threads())
+    }
+
     /// Matches two images with the default options.
     pub fn match_pair(&self, f0: &Features, f1: &Features) -> Result<MatchOutput> {
         self.match_pair_with(f0, f1, MatchOptions::default())
@@ -319,6 +327,9 @@ impl Matcher {
         f1.validate(self.config.descriptor_dim, 1)?;
         let (m, n) = (f0.len(), f1.len());
         let mut profile = Profile::default();
+        let limit = opts.memory_limit.unwrap_or_else(crate::memory::memory_limit);
+        let needed = self.memory_needed(m, n);
+        crate::memory::check(format!("a match of {m} × {n} keypoints"), needed, limit)?;
         let (matches, p) = if m == 0 || n == 0 {
             (Matches::none(m, n), Matrix::zeros(m + 1, n + 1))
         } else {

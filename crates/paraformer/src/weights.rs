@@ -157,7 +157,13 @@ impl<'a> CheckedBackend<'a> {
                     found_shape: t.shape.clone(),
                 })
             }
-            Some(t) => return Tensor::from_vec(t.to_f32(), shape.clone(), &Device::Cpu),
+            Some(t) => {
+                let values = t.to_f32();
+                match values.iter().position(|v| !v.is_finite()) {
+                    None => return Tensor::from_vec(values, shape.clone(), &Device::Cpu),
+                    Some(index) => Some(TensorProblem::NonFinite { name: name.into(), index, value: values[index].to_string() }),
+                }
+            }
         };
         if let (Some(p), Ok(mut ps)) = (problem, self.problems.lock()) {
             ps.push(p);

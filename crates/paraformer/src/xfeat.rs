@@ -490,6 +490,11 @@ impl XFeat {
         if img.data.len() != w * h {
             return Err(Error::input("image", format!("{} values for a {w}×{h} image", img.data.len())));
         }
+        crate::memory::check(
+            format!("XFeat on a {w}×{h} image"),
+            crate::memory::xfeat_bytes(w, h),
+            crate::memory::memory_limit(),
+        )?;
         if let Some(bad) = img.data.iter().position(|v| !v.is_finite()) {
             return Err(Error::input("image", format!("non-finite pixel value at index {bad}")));
         }

@@ -247,7 +247,7 @@ fn zero_keypoints_on_either_side_gives_all_unmatched() {
     let c = case();
     let empty = Features::new(vec![], None, vec![], 16, (640.0, 480.0));
     for (a, b) in [(&empty, &c.f1), (&c.f0, &empty), (&empty, &empty)] {
-        let out = m.match_pair_with(a, b, MatchOptions { return_log_assignment: true }).expect("K = 0 is valid");
+        let out = m.match_pair_with(a, b, MatchOptions { return_log_assignment: true, ..Default::default() }).expect("K = 0 is valid");
         assert_eq!(out.matches0, vec![-1; a.len()]);
         assert_eq!(out.matches1, vec![-1; b.len()]);
         assert!(out.matching_scores0.iter().chain(&out.matching_scores1).all(|&s| s == 0.0));
@@ -376,4 +376,61 @@ fn xfeat_weights_truncated_or_mismatched_are_errors() {
     let err = XFeat::from_bytes(&other).expect_err("mismatched").to_string();
     assert!(err.contains("block1.0.layer.0.weight") && err.contains("missing"), "{err}");
     assert!(err.contains("unexpected"), "{err}");
+}
+
+// ---- hostile weights, absurd configs, memory limits ----------------------------
+
+#[test]
+fn non_finite_weights_are_named() {
+    for (bits, shown) in [(f32::NAN.to_le_bytes(), "NaN"), (f32::INFINITY.to_le_bytes(), "inf")] {
+        let bytes = edited(|ents, _| {
+            let e = ents.iter_mut().find(|e| e.name == "final_proj.weight").expect("present");
+            e.data[12..16].copy_from_slice(&bits);
+        });
+        let err = Matcher::from_bytes(&bytes).expect_err("non-finite weight");
+        assert!(err.is_weights_error(), "{err}");
+        assert_eq!(
+            mismatch_problems(&bytes),
+            vec![TensorProblem::NonFinite { name: "final_proj.weight".into(), index: 3, value: shown.into() }]
+        );
+    }
+}
+
+#[test]
+fn absurd_config_values_are_refused_before_allocating() {
+    for (field, value, needle) in [
+        ("dim", "1000000000", "dim = 1000000000"),
+        ("num_layers", "1000000", "num_layers = 1000000"),
+        ("sinkhorn_iterations", "1000000000", "sinkhorn_iterations = 1000000000"),
+        ("descriptor_dim", "1000000000", "descriptor_dim = 1000000000"),
+    ] {
+        let json = format!(r#"{{"model": "paraformer", "{field}": {value}}}"#);
+        let err = paraformer::Config::from_json(&json).and_then(|c| c.validate()).expect_err(field);
+        assert!(matches!(err, Error::Config(_)) && err.to_string().contains(needle), "{err}");
+    }
+    let zero_stage = r#"{"model": "paraformer_u", "stage_dims": [64, 0, 64, 0, 64]}"#;
+    let err = paraformer::Config::from_json(zero_stage).and_then(|c| c.validate()).expect_err("zero-width stage");
+    assert!(err.to_string().contains("stage_dims[1] = 0"), "{err}");
+    let huge_stage = r#"{"model": "paraformer_u", "stage_depths": [1, 1, 1000000, 1, 1]}"#;
+    let err = paraformer::Config::from_json(huge_stage).and_then(|c| c.validate()).expect_err("deep stage");
+    assert!(err.to_string().contains("stage_depths[2]"), "{err}");
+}
+
+#[test]
+fn a_match_beyond_the_memory_limit_is_an_error_not_an_abort() {
+    let m = matcher();
+    let c = case();
+    let opts = MatchOptions { memory_limit: Some(1000), ..Default::default() };
+    match m.match_pair_with(&c.f0, &c.f1, opts) {
+        Err(Error::Resource { needed, limit, .. }) => assert!(needed > limit && limit == 1000),
+        other => panic!("expected Resource, got {other:?}"),
+    }
+    // 60,000 × 60,000 keypoints: ~29 GB of couplings, refused under a 4 GB limit.
+    let d = m.config().descriptor_dim;
+    let n = 60_000;
+    let kpts: Vec<[f32; 2]> = (0..n).map(|i| [(i % 640) as f32, (i / 640) as f32]).collect();
+    let f = paraformer::Features::new(kpts, None, vec![0.1; n * d], d, (640.0, 480.0));
+    let opts = MatchOptions { memory_limit: Some(4_000_000_000), ..Default::default() };
+    let err = m.match_pair_with(&f, &f, opts).expect_err("too large");
+    assert!(matches!(err, Error::Resource { .. }) && err.to_string().contains("60000 × 60000"), "{err}");
 }

@@ -114,3 +114,11 @@ fn match_errors_are_one_line() {
         assert!(err.starts_with("error: ") && err.contains(needle), "{args:?}: {err}");
     }
 }
+
+#[test]
+fn memory_limit_refuses_with_a_one_line_error() {
+    let (ok, _, err) = run(&["--memory-limit", "1M", "match", &sample("coffee_0.jpg"), &sample("coffee_1.jpg")]);
+    assert!(!ok && err.contains("needs") && err.contains("limit of 1.0 MB") && err.trim().lines().count() == 1, "{err}");
+    let (ok, _, err) = run(&["--memory-limit", "lots", "flops"]);
+    assert!(!ok && err.contains("8G"), "{err}");
+}

@@ -99,7 +99,7 @@ pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
 /// matching scores within `tol` absolute. Returns the max abs diff of `log_assignment`.
 pub fn check_case(matcher: &Matcher, case: &Case, tol: f32, label: &str) -> f32 {
     let out = matcher
-        .match_pair_with(&case.f0, &case.f1, MatchOptions { return_log_assignment: true })
+        .match_pair_with(&case.f0, &case.f1, MatchOptions { return_log_assignment: true, ..Default::default() })
         .unwrap_or_else(|e| panic!("{label}: {e}"));
     let la = out.log_assignment.expect("asked for log_assignment");
     assert_eq!(vec![la.rows, la.cols], case.la_shape, "{label}: log_assignment shape");
