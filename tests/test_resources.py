@@ -96,3 +96,60 @@ def test_absurd_configs_are_refused_before_allocating(field, value):
     weights = (DATA / "golden" / "paraformer.weights.safetensors").read_bytes()
     with pytest.raises((paraformer.WeightsError, ValueError), match=field):
         paraformer.Matcher({"model": "paraformer", field: value}, weights)
+
+
+def test_ctrl_c_interrupts_a_long_match_many():
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = """
+import sys, numpy as np, paraformer
+m = paraformer.Matcher.pretrained("paraformer-xfeat")
+rng = np.random.default_rng(0)
+f = {"keypoints": rng.uniform(0, 600, (2048, 2)).astype(np.float32),
+     "descriptors": rng.normal(size=(2048, 64)).astype(np.float32), "image_size": (640, 480)}
+print("ready", flush=True)
+try:
+    m.match_many([(f, f)] * 400, num_threads=2)
+    print("finished")
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+    sys.exit(3)
+"""
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "ready"
+    time.sleep(1.5)
+    t0 = time.time()
+    p.send_signal(signal.SIGINT)
+    out, _ = p.communicate(timeout=30)
+    waited = time.time() - t0
+    assert p.returncode == 3 and "interrupted" in out, (p.returncode, out, waited)
+    assert waited < 5, f"took {waited:.1f} s to stop"  # about one pair per worker (~0.3 s) in practice
+    print(f"stopped {waited:.2f} s after SIGINT")
+
+
+@pytest.mark.parametrize("name", paraformer.pretrained_names())
+def test_extreme_but_valid_inputs_give_finite_outputs(name):
+    m = paraformer.Matcher.pretrained(name)
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(300, 64)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    k = rng.uniform(0, 600, (300, 2)).astype(np.float32)
+    k8 = rng.uniform(0, 600, (8192, 2)).astype(np.float32)
+    d8 = rng.normal(size=(8192, 64)).astype(np.float32)
+    same = np.full((300, 2), 100, np.float32)
+    cases = {
+        "all keypoints identical": (same, d, same, d, (640, 480), (640, 480)),
+        "keypoints at ±1e30": (np.full((300, 2), 1e30, np.float32), d, np.full((300, 2), -1e30, np.float32), d,
+                               (640, 480), (640, 480)),
+        "image size 1 × 1e6": (k, d, k, d, (1, 1e6), (1e6, 1)),
+        "all-zero descriptors": (k, np.zeros_like(d), k, np.zeros_like(d), (640, 480), (640, 480)),
+        "1 keypoint against 8192": (k[:1], d[:1], k8, d8, (640, 480), (640, 480)),
+    }
+    for label, (k0, d0, k1, d1, s0, s1) in cases.items():
+        out = m.match(k0, d0, k1, d1, size0=s0, size1=s1, return_log_assignment=True)
+        for key in ("matching_scores0", "matching_scores1", "log_assignment"):
+            assert not np.isnan(out[key]).any(), (label, key)
+        assert out["matches0"].shape == (len(k0),) and out["matches1"].shape == (len(k1),), label

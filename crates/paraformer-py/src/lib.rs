@@ -275,6 +275,8 @@ impl PyMatcher {
             .max()
             .unwrap_or(0);
         let threads = threads.min(usize::try_from(limit / largest.max(1)).unwrap_or(usize::MAX).max(1));
+        let cancel = std::sync::atomic::AtomicBool::new(false);
+        let mut interrupt: Option<PyErr> = None;
         let results = py.detach(|| {
             let next = AtomicUsize::new(0);
             let mut slots: Vec<Option<paraformer::Result<MatchOutput>>> = (0..feats.len()).map(|_| None).collect();
@@ -283,7 +285,7 @@ impl PyMatcher {
                     .map(|_| {
                         s.spawn(|| {
                             let mut done = Vec::new();
-                            loop {
+                            while !cancel.load(Ordering::Relaxed) {
                                 let i = next.fetch_add(1, Ordering::Relaxed);
                                 let Some((f0, f1)) = feats.get(i) else { break };
                                 done.push((i, self.inner.match_pair_with(f0, f1, opts)));
@@ -292,6 +294,16 @@ impl PyMatcher {
                         })
                     })
                     .collect();
+                // The calling thread watches for Ctrl-C (Python handles signals on it) while
+                // the workers run; on a signal they stop after their current pair.
+                while !workers.iter().all(|w| w.is_finished()) {
+                    std::thread::sleep(std::time::Duration::from_millis(20));
+                    if let Err(e) = Python::attach(|py| py.check_signals()) {
+                        cancel.store(true, Ordering::Relaxed);
+                        interrupt = Some(e);
+                        break;
+                    }
+                }
                 for w in workers {
                     // A worker only panics on a bug; its pairs are then reported as errors below.
                     if let Ok(done) = w.join() {
@@ -303,6 +315,9 @@ impl PyMatcher {
             });
             slots
         });
+        if let Some(e) = interrupt {
+            return Err(e);
+        }
         results
             .into_iter()
             .enumerate()
