@@ -111,9 +111,16 @@ enum Command {
         /// Write the side-by-side picture (inliers green, outliers red) to this PNG.
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Write keypoint counts, matches, inliers, the model and timings as JSON.
+        /// Write keypoint counts, matches, inliers, the model and timings as JSON (compact).
         #[arg(long)]
         json: Option<PathBuf>,
+        /// Indent the --json output.
+        #[arg(long, requires = "json")]
+        pretty: bool,
+        /// 1: match image1 as given; 4: also turned by 90, 180 and 270° (XFeat's descriptors
+        /// are upright), keeping the turn with the most inliers.
+        #[arg(long, default_value_t = 1)]
+        rotations: usize,
     },
     /// Draw the matches of one pair side by side (inliers green, outliers red) into a PNG.
     Draw {
@@ -271,8 +278,8 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             println!("{} × {} keypoints, {} matches ({}), {} inliers ({geometry}); model:{}", f0.len(), f1.len(), x0.len(), spec.name(), fit.count(), fit.text);
             println!("wrote {}", out.display());
         }
-        Command::Match { image0, image1, matcher, weights, max_keypoints, geometry, threshold, out, json } => {
-            match_images(MatchArgs { image0, image1, matcher, weights, max_keypoints, geometry, threshold, out, json })?
+        Command::Match { image0, image1, matcher, weights, max_keypoints, geometry, threshold, out, json, pretty, rotations } => {
+            match_images(MatchArgs { image0, image1, matcher, weights, max_keypoints, geometry, threshold, out, json, pretty, rotations })?
         }
         Command::Inspect { weights } => {
             let w = Weights::from_file(&weights)?;
@@ -344,6 +351,8 @@ struct MatchArgs {
     threshold: f64,
     out: Option<PathBuf>,
     json: Option<PathBuf>,
+    pretty: bool,
+    rotations: usize,
 }
 
 /// The default matcher of `paraformer match`: the shipped ParaFormer when present.
@@ -359,6 +368,9 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
     if a.max_keypoints == 0 {
         return Err(input_error("--max-keypoints", "must be at least 1"));
+    }
+    if a.rotations != 1 && a.rotations != 4 {
+        return Err(input_error("--rotations", format!("must be 1 or 4, got {}", a.rotations)));
     }
     let total = Instant::now();
     let t = Instant::now();
@@ -378,16 +390,29 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     let t = Instant::now();
     let f0 = xfeat.detect_and_compute(&img0, Some(a.max_keypoints))?;
     let t_extract0 = ms(t);
-    let t = Instant::now();
-    let f1 = xfeat.detect_and_compute(&img1, Some(a.max_keypoints))?;
-    let t_extract1 = ms(t);
-    let t = Instant::now();
-    let m0 = spec.matches(&f0, &f1)?;
-    let t_match = ms(t);
-    let (x0, x1) = paraformer::eval::harness::correspondences(&f0, &f1, &m0);
-    let t = Instant::now();
-    let fit = fit_model(&a.geometry, &x0, &x1, a.threshold)?;
-    let t_geometry = ms(t);
+    // Image1 as given, and with --rotations 4 also turned by 90, 180, 270°: the turn with
+    // the most inliers is kept, its points mapped back into image1's own frame.
+    let (mut t_extract1, mut t_match, mut t_geometry) = (0.0, 0.0, 0.0);
+    let mut best: Option<(usize, paraformer::Features, Vec<i64>, Vec<[f64; 2]>, Vec<[f64; 2]>, Fit)> = None;
+    for quarters in 0..a.rotations {
+        let t = Instant::now();
+        let f1 = xfeat.detect_and_compute(&img1.rotate90(quarters), Some(a.max_keypoints))?;
+        t_extract1 += ms(t);
+        let t = Instant::now();
+        let m0 = spec.matches(&f0, &f1)?;
+        t_match += ms(t);
+        let (x0, x1) = paraformer::eval::harness::correspondences(&f0, &f1, &m0);
+        let x1 = img1.unrotate_points(&x1, quarters);
+        let t = Instant::now();
+        let fit = fit_model(&a.geometry, &x0, &x1, a.threshold)?;
+        t_geometry += ms(t);
+        if best.as_ref().is_none_or(|b| fit.count() > b.5.count()) {
+            best = Some((quarters, f1, m0, x0, x1, fit));
+        }
+    }
+    let Some((quarters, f1, m0, x0, x1, fit)) = best else {
+        return Err(input_error("--rotations", "must be 1 or 4"));
+    };
     let t = Instant::now();
     if let Some(out) = &a.out {
         draw(&a.image0, &a.image1, &x0, &x1, &fit.inliers, out)?;
@@ -397,6 +422,9 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     println!("image0   {} ({}×{}): {} keypoints", a.image0.display(), img0.width, img0.height, f0.len());
     println!("image1   {} ({}×{}): {} keypoints", a.image1.display(), img1.width, img1.height, f1.len());
     println!("matcher  {}: {} matches", spec.name(), x0.len());
+    if a.rotations > 1 {
+        println!("rotation image1 turned {}° counter-clockwise matched best", 90 * quarters);
+    }
     let share = if x0.is_empty() { 0.0 } else { 100.0 * inliers as f64 / x0.len() as f64 };
     println!("{:<8} {inliers} inliers ({share:.1}%) at {} px; model:{}", a.geometry, a.threshold, fit.text);
     println!(
@@ -418,9 +446,11 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
             "num_inliers": inliers,
             "geometry": a.geometry,
             "model": fit.model,
+            "rotation": 90 * quarters,
             "timings_ms": {"load": t_load, "decode": t_decode, "extract0": t_extract0, "extract1": t_extract1, "match": t_match, "geometry": t_geometry, "draw": t_draw, "total": ms(total)},
         });
-        let text = serde_json::to_string_pretty(&value).map_err(|e| input_error("--json", e))?;
+        let text = if a.pretty { serde_json::to_string_pretty(&value) } else { serde_json::to_string(&value) }
+            .map_err(|e| input_error("--json", e))?;
         std::fs::write(path, text).map_err(|source| paraformer::Error::Io { path: path.clone(), source })?;
         println!("wrote {}", path.display());
     }

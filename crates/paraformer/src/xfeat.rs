@@ -112,6 +112,36 @@ impl GrayImage {
         Ok(Self::from_dynamic(&img))
     }
 
+    /// The image turned counter-clockwise by `quarters` × 90° (as numpy's `rot90`).
+    pub fn rotate90(&self, quarters: usize) -> GrayImage {
+        let mut img = self.clone();
+        for _ in 0..quarters % 4 {
+            let (w, h) = (img.width, img.height);
+            // Turned pixel (x', y') is pixel (w − 1 − y', x') of the image before the turn.
+            let mut data = vec![0.0f32; w * h];
+            for yr in 0..w {
+                for xr in 0..h {
+                    data[yr * h + xr] = img.data[xr * w + (w - 1 - yr)];
+                }
+            }
+            img = GrayImage { width: h, height: w, data };
+        }
+        img
+    }
+
+    /// Points of `self.rotate90(quarters)` back in this image's frame.
+    pub fn unrotate_points(&self, points: &[[f64; 2]], quarters: usize) -> Vec<[f64; 2]> {
+        let mut p = points.to_vec();
+        for j in (1..=quarters % 4).rev() {
+            // Width of the image before turn j.
+            let w = if (j - 1) % 2 == 0 { self.width } else { self.height } as f64;
+            for q in &mut p {
+                *q = [w - 1.0 - q[1], q[0]];
+            }
+        }
+        p
+    }
+
     /// Decodes an image held in memory (format guessed from its bytes).
     pub fn from_encoded(bytes: &[u8]) -> Result<Self> {
         let img = image::load_from_memory(bytes).map_err(|e| Error::input("image", format!("unreadable image: {e}")))?;
@@ -593,6 +623,25 @@ fn nms(heat: &[f32], w: usize, h: usize, threshold: f32) -> Vec<(usize, usize)> 
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn rotate90_matches_numpy_and_points_map_back() {
+        // 3 × 2 image: rows [0 1 2], [3 4 5]; numpy rot90 (k=1) gives rows [2 5], [1 4], [0 3].
+        let img = GrayImage::new(3, 2, (0..6).map(|v| v as f32).collect()).expect("valid");
+        let r = img.rotate90(1);
+        assert_eq!((r.width, r.height), (2, 3));
+        assert_eq!(r.data, vec![2.0, 5.0, 1.0, 4.0, 0.0, 3.0]);
+        for k in 0..4 {
+            let r = img.rotate90(k);
+            for y in 0..r.height {
+                for x in 0..r.width {
+                    let [ox, oy] = img.unrotate_points(&[[x as f64, y as f64]], k)[0];
+                    assert_eq!(r.data[y * r.width + x], img.data[oy as usize * 3 + ox as usize], "k={k} ({x},{y})");
+                }
+            }
+        }
+    }
+
     use super::*;
 
     #[test]

@@ -122,3 +122,25 @@ fn memory_limit_refuses_with_a_one_line_error() {
     let (ok, _, err) = run(&["--memory-limit", "lots", "flops"]);
     assert!(!ok && err.contains("8G"), "{err}");
 }
+
+#[test]
+fn rotations_4_recovers_a_pair_turned_by_180_degrees() {
+    let dir = std::env::temp_dir().join(format!("paraformer-rot-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let turned = dir.join("coffee_1_turned.png");
+    let img = image::open(sample("coffee_1.jpg")).expect("sample decodes").rotate180();
+    img.save(&turned).expect("writes");
+    let json = dir.join("m.json");
+    let (ok, out, err) = run(&["match", &sample("coffee_0.jpg"), turned.to_str().unwrap(), "--rotations", "4",
+                                "--json", json.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    assert!(out.contains("turned 180°"), "{out}");
+    let text = std::fs::read_to_string(&json).expect("json written");
+    assert_eq!(text.lines().count(), 1, "compact JSON is one line");
+    let v: serde_json::Value = serde_json::from_str(&text).expect("valid JSON");
+    assert_eq!(v["rotation"], 180);
+    assert!(v["num_inliers"].as_u64().unwrap_or(0) > 100, "{v}");
+    let (ok, _, err) = run(&["match", &sample("coffee_0.jpg"), &sample("coffee_1.jpg"), "--rotations", "3"]);
+    assert!(!ok && err.contains("--rotations") && err.contains("1 or 4"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
