@@ -48,12 +48,14 @@ fn parse_bytes(s: &str) -> Result<u64, String> {
 enum Command {
     /// Match one pair of stored features (a pair file, as in tests/data) and print the matches.
     Demo {
-        /// Weights file (safetensors with `paraformer.config` metadata).
-        #[arg(long, default_value = "tests/data/spec_vectors/paraformer.weights.safetensors")]
-        weights: PathBuf,
-        /// Pair file: keypoints0/1, scores0/1, descriptors0/1, image_size0/1.
-        #[arg(long, default_value = "tests/data/spec_vectors/paraformer.case0.safetensors")]
-        pair: PathBuf,
+        /// Weights file (safetensors with `paraformer.config` metadata); default: the SPEC
+        /// test-vector model built into the binary.
+        #[arg(long)]
+        weights: Option<PathBuf>,
+        /// Pair file: keypoints0/1, scores0/1, descriptors0/1, image_size0/1; default: the
+        /// SPEC test-vector pair built into the binary.
+        #[arg(long)]
+        pair: Option<PathBuf>,
     },
     /// Print the config and tensor names of a weights file, after a strict check.
     Inspect {
@@ -203,8 +205,17 @@ fn run(cli: Cli) -> paraformer::Result<()> {
     }
     match cli.command {
         Command::Demo { weights, pair } => {
-            let matcher = Matcher::from_file(&weights)?;
-            let (f0, f1) = read_pair_file(&pair)?;
+            // Built in, so that `paraformer demo` runs from any folder.
+            const DEMO_WEIGHTS: &[u8] = include_bytes!("../demo/paraformer.weights.safetensors");
+            const DEMO_PAIR: &[u8] = include_bytes!("../demo/paraformer.case0.safetensors");
+            let matcher = match &weights {
+                Some(w) => Matcher::from_file(w)?,
+                None => Matcher::from_bytes(DEMO_WEIGHTS)?,
+            };
+            let (f0, f1) = match &pair {
+                Some(p) => read_pair_file(p)?,
+                None => paraformer::read_pair_bytes(DEMO_PAIR)?,
+            };
             let start = std::time::Instant::now();
             let out = matcher.match_pair_with(&f0, &f1, MatchOptions::default())?;
             let elapsed = start.elapsed();

@@ -144,3 +144,12 @@ fn rotations_4_recovers_a_pair_turned_by_180_degrees() {
     assert!(!ok && err.contains("--rotations") && err.contains("1 or 4"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn demo_runs_from_any_folder() {
+    let dir = std::env::temp_dir();
+    let out = Command::new(env!("CARGO_BIN_EXE_paraformer")).arg("demo").current_dir(&dir).output().expect("runs");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.contains("matches in"), "{text}");
+}
