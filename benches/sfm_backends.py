@@ -85,6 +85,15 @@ def main() -> None:
         res["features_put_s"] = time.time() - t0
         res["features_mb"] = sum(sum(v.nbytes for v in f.values()) for f in feats.values()) / 2**20
         del ref
+        # Result serialisation: one batch of match results as the workers return it
+        # (int64 matches + float32 scores as bytes), through the object store and back.
+        batch = {"index": np.arange(len(pairs)),
+                 "matches0": np.array([np.zeros(a.max_keypoints, "<i8").tobytes()] * len(pairs), dtype=object),
+                 "matching_scores0": np.array([np.zeros(a.max_keypoints, "<f4").tobytes()] * len(pairs), dtype=object)}
+        t0 = time.time()
+        ray.get(ray.put(batch))
+        res["results_roundtrip_pairs_per_s"] = len(pairs) / (time.time() - t0)
+        res["result_kb_per_pair"] = a.max_keypoints * 12 / 1024
         m0 = np.zeros(a.max_keypoints, np.int64)
         s0 = np.zeros(a.max_keypoints, np.float32)
         t0 = time.time()
