@@ -131,7 +131,7 @@ fn rotations_4_recovers_a_pair_turned_by_180_degrees() {
     let img = image::open(sample("coffee_1.jpg")).expect("sample decodes").rotate180();
     img.save(&turned).expect("writes");
     let json = dir.join("m.json");
-    let (ok, out, err) = run(&["match", &sample("coffee_0.jpg"), turned.to_str().unwrap(), "--rotations", "4",
+    let (ok, out, err) = run(&["match", &sample("coffee_0.jpg"), turned.to_str().unwrap(), "--rotations", "4", "--max-keypoints", "1024",
                                 "--json", json.to_str().unwrap()]);
     assert!(ok, "{err}");
     assert!(out.contains("turned 180°"), "{out}");
