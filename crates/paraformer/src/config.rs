@@ -47,8 +47,10 @@ pub enum Pooling {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum LayerKind {
+    /// Self-attention within each image (`"self"`).
     #[serde(rename = "self")]
     SelfAttention,
+    /// Cross-attention between the images (`"cross"`).
     #[serde(rename = "cross")]
     Cross,
 }

@@ -9,7 +9,9 @@ pub enum Error {
     /// A file (weights, image, dataset) could not be read from disk.
     #[error("cannot read {}: {source}", path.display())]
     Io {
+        /// The file.
         path: PathBuf,
+        /// What the operating system said (not found, permission denied, …).
         #[source]
         source: std::io::Error,
     },
@@ -25,14 +27,27 @@ pub enum Error {
     /// The tensors in the file do not match the config (every problem is listed).
     #[error("weights do not match the config ({} problem{}):\n{}", .0.len(), if .0.len() == 1 { "" } else { "s" }, ProblemList(.0))]
     WeightsMismatch(Vec<TensorProblem>),
-    /// A bad argument to `match_pair` (shape, width, NaN/Inf, image size).
+    /// A bad argument to `match_pair`, XFeat or the geometry (shape, width, NaN/Inf,
+    /// image size, an undecodable image, an unknown pretrained name).
     #[error("invalid input `{argument}`: {reason}")]
-    InvalidInput { argument: String, reason: String },
+    InvalidInput {
+        /// The argument, as named in the API (`keypoints0`, `descriptors1`, `image`, a path).
+        argument: String,
+        /// What is wrong with it and what was expected.
+        reason: String,
+    },
     /// A call would need more memory than the limit allows (see [`crate::memory`]); nothing
     /// was allocated.
     #[error("{what} needs {} of memory, more than the limit of {} (fewer keypoints, a smaller image, or a higher limit: paraformer::memory::set_memory_limit, paraformer.set_memory_limit, --memory-limit)", crate::memory::human(*.needed), crate::memory::human(*.limit))]
-    Resource { what: String, needed: u64, limit: u64 },
-    /// An internal tensor operation failed.
+    Resource {
+        /// The call that was refused (`a match of 60000 × 60000 keypoints`).
+        what: String,
+        /// Bytes it would need.
+        needed: u64,
+        /// The limit in force, in bytes.
+        limit: u64,
+    },
+    /// An internal tensor operation failed (a bug: please report it).
     #[error("tensor operation failed: {0}")]
     Tensor(#[from] candle_core::Error),
 }
@@ -54,11 +69,45 @@ impl Error {
 /// One way in which a tensor of a weights file differs from what the config needs.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum TensorProblem {
-    Missing { name: String, expected_shape: Vec<usize> },
-    Unexpected { name: String, shape: Vec<usize> },
-    WrongShape { name: String, expected_shape: Vec<usize>, found_shape: Vec<usize> },
-    WrongDtype { name: String, found: String },
-    NonFinite { name: String, index: usize, value: String },
+    /// The config needs a tensor the file does not have.
+    Missing {
+        /// Tensor name.
+        name: String,
+        /// The shape the config needs.
+        expected_shape: Vec<usize>,
+    },
+    /// The file has a tensor the config does not use.
+    Unexpected {
+        /// Tensor name.
+        name: String,
+        /// Its shape in the file.
+        shape: Vec<usize>,
+    },
+    /// The tensor's shape differs from what the config needs.
+    WrongShape {
+        /// Tensor name.
+        name: String,
+        /// The shape the config needs.
+        expected_shape: Vec<usize>,
+        /// The shape in the file.
+        found_shape: Vec<usize>,
+    },
+    /// The tensor is not a float tensor (F32, F16 or BF16).
+    WrongDtype {
+        /// Tensor name.
+        name: String,
+        /// Its dtype in the file.
+        found: String,
+    },
+    /// The tensor holds a NaN or an infinity.
+    NonFinite {
+        /// Tensor name.
+        name: String,
+        /// Flat index of the first non-finite value.
+        index: usize,
+        /// That value (`NaN`, `inf`, `-inf`).
+        value: String,
+    },
 }
 
 impl TensorProblem {
@@ -111,4 +160,5 @@ impl fmt::Display for ProblemList<'_> {
     }
 }
 
+/// The crate's result type.
 pub type Result<T> = std::result::Result<T, Error>;

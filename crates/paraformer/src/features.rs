@@ -52,6 +52,7 @@ impl Features {
         self.keypoints.len()
     }
 
+    /// True when there are no keypoints.
     pub fn is_empty(&self) -> bool {
         self.keypoints.is_empty()
     }

@@ -16,6 +16,7 @@ pub struct Flops {
 }
 
 impl Flops {
+    /// All multiply-accumulates of one forward pass.
     pub fn total(&self) -> u64 {
         self.encoder + self.layers + self.final_projection
     }

@@ -5,17 +5,36 @@
 //! baseline, all ending in SuperGlue's optimal matching layer. The numerical contract
 //! is `SPEC.md`; weights are safetensors files with the config in their metadata.
 //!
-//! ```no_run
-//! use paraformer::{Features, Matcher};
-//! let matcher = Matcher::from_file("paraformer.safetensors")?;
-//! let d = matcher.config().descriptor_dim;
-//! let f0 = Features::new(vec![[10.0, 20.0]], None, vec![0.1; d], d, (640.0, 480.0));
-//! let f1 = Features::new(vec![[12.0, 21.0]], None, vec![0.1; d], d, (640.0, 480.0));
-//! let out = matcher.match_pair(&f0, &f1)?;
-//! println!("{:?}", out.pairs());
-//! # Ok::<(), paraformer::Error>(())
+//! From two images to a homography with the shipped models (XFeat keypoints, the trained
+//! ParaFormer, RANSAC), on the sample pair that comes with the repository:
+//!
 //! ```
+//! use paraformer::geometry::{homography::find_homography, RansacConfig};
+//! use paraformer::{GrayImage, Matcher, XFeat};
+//!
+//! let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../assets/sample");
+//! let xfeat = XFeat::pretrained()?; // weights embedded in the crate
+//! let f0 = xfeat.detect_and_compute(&GrayImage::open(format!("{dir}/coffee_0.jpg"))?, Some(1024))?;
+//! let f1 = xfeat.detect_and_compute(&GrayImage::open(format!("{dir}/coffee_1.jpg"))?, Some(1024))?;
+//!
+//! let matcher = Matcher::pretrained("paraformer-xfeat")?;
+//! let out = matcher.match_pair(&f0, &f1)?; // matches0[i] = j, or −1
+//! let point = |p: [f32; 2]| [p[0] as f64, p[1] as f64];
+//! let (x0, x1): (Vec<_>, Vec<_>) =
+//!     out.pairs().into_iter().map(|(i, j)| (point(f0.keypoints[i]), point(f1.keypoints[j]))).unzip();
+//!
+//! let fit = find_homography(&x0, &x1, &RansacConfig::default())?;
+//! assert!(fit.num_inliers > 100, "{} inliers of {} matches", fit.num_inliers, x0.len());
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+//!
+//! Modules: [`matcher`] (load and run), [`xfeat`] (keypoints from images), [`geometry`]
+//! (RANSAC estimators), [`eval`] (ground truth, metrics, datasets), [`config`],
+//! [`weights`] (the strict loader), [`memory`] (the memory guard), [`error`].
 
+#![warn(missing_docs)]
+
+#[doc(hidden)]
 pub mod attention;
 pub mod config;
 pub mod error;
@@ -23,13 +42,18 @@ pub mod eval;
 pub mod features;
 pub mod flops;
 pub mod geometry;
+#[doc(hidden)]
 pub mod kernels;
+#[doc(hidden)]
 pub mod layers;
 pub mod matcher;
 pub mod memory;
+#[doc(hidden)]
 pub mod mlp;
+#[doc(hidden)]
 pub mod pooling;
 pub mod sinkhorn;
+#[doc(hidden)]
 pub mod wave_pe;
 pub mod weights;
 pub mod xfeat;

@@ -30,6 +30,7 @@ pub struct UNet {
 type StageOutput = (Matrix, Matrix, Option<(Vec<f32>, Vec<f32>)>);
 
 impl UNet {
+    /// Builds the five stages and their poolings from `vb` (SPEC §6).
     pub fn new(cfg: &Config, vb: VarBuilder) -> candle_core::Result<Self> {
         let (dims, heads) = (&cfg.stage_dims, cfg.num_heads);
         let stages = (0..5)
@@ -59,6 +60,7 @@ impl UNet {
         Ok((x, y, sums))
     }
 
+    /// Runs the U-Net on the features of both images.
     pub fn forward(&self, ctx: &Ctx, x: Matrix, y: Matrix) -> Result<(Matrix, Matrix)> {
         let (mut x, mut y) = (x, y);
         let mut skips = Vec::with_capacity(2);
@@ -114,6 +116,7 @@ pub struct Profile {
 }
 
 impl Profile {
+    /// Seconds of the whole call.
     pub fn total(&self) -> f64 {
         self.encoder + self.layers + self.final_projection + self.sinkhorn + self.extraction
     }
@@ -136,6 +139,7 @@ pub struct Network {
 }
 
 impl Network {
+    /// Builds the network of `cfg` from `vb` (tensor names as SPEC §2).
     pub fn new(cfg: &Config, vb: VarBuilder) -> candle_core::Result<Self> {
         let c = cfg.model_dim();
         let input_proj =
@@ -294,6 +298,7 @@ impl Matcher {
         Ok(Self { config, network })
     }
 
+    /// The config in use (every field as the model uses it).
     pub fn config(&self) -> &Config {
         &self.config
     }

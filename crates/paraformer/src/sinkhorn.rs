@@ -139,9 +139,13 @@ pub fn log_optimal_transport_reference(z: &mut Matrix, bin_score: f32, iters: us
 /// Mutual-best matches from a log assignment (SPEC §8).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Matches {
+    /// `[M]` index into image 1, −1 if unmatched.
     pub matches0: Vec<i64>,
+    /// `[N]` index into image 0, −1 if unmatched.
     pub matches1: Vec<i64>,
+    /// `[M]` match confidence (0 where unmatched).
     pub matching_scores0: Vec<f32>,
+    /// `[N]` match confidence (0 where unmatched).
     pub matching_scores1: Vec<f32>,
 }
 

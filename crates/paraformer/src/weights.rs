@@ -1,7 +1,7 @@
 //! Strict safetensors loading (SPEC §9): the config from the `paraformer.config`
 //! metadata, and a check of the file against exactly the tensors the config needs.
 //!
-//! Models are built through a candle `VarBuilder` whose backend ([`CheckedBackend`])
+//! Models are built through a candle `VarBuilder` whose backend (`CheckedBackend`)
 //! records every problem instead of failing at the first one, so a single load
 //! reports every missing, unexpected, mis-shaped or wrongly typed tensor.
 

@@ -46,7 +46,9 @@ impl Default for XFeatConfig {
 /// as XFeat does).
 #[derive(Debug, Clone, PartialEq)]
 pub struct GrayImage {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
     /// Row-major, `width · height` values.
     pub data: Vec<f32>,
@@ -487,10 +489,12 @@ impl XFeat {
     }
 
     /// XFeat weights converted by `scripts/convert_xfeat.py`.
+    /// Loads XFeat weights from a safetensors file (the layout of `scripts/convert_xfeat.py`).
     pub fn from_file(path: impl AsRef<Path>) -> Result<Self> {
         Self::from_weights(&Weights::from_file(path)?)
     }
 
+    /// Loads XFeat weights from safetensors bytes.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self> {
         Self::from_weights(&Weights::from_bytes(bytes)?)
     }
@@ -500,11 +504,13 @@ impl XFeat {
         Ok(Self { net: weights.build(XFeatModel::new)?, config: XFeatConfig::default() })
     }
 
+    /// The same network with other detection settings.
     pub fn with_config(mut self, config: XFeatConfig) -> Self {
         self.config = config;
         self
     }
 
+    /// The detection settings in use.
     pub fn config(&self) -> &XFeatConfig {
         &self.config
     }

@@ -31,10 +31,15 @@ fn distances(d0: &[f32], d1: &[f32], dim: usize) -> Vec<f32> {
 /// Which baseline.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Baseline {
+    /// Each keypoint of image 0 to its nearest descriptor in image 1.
     NearestNeighbour,
+    /// Nearest neighbours both ways that agree.
     MutualNearestNeighbour,
     /// Keep matches whose best distance is below `ratio` × the second best.
-    RatioTest { ratio: f32 },
+    RatioTest {
+        /// Lowe's ratio (0.8 is usual).
+        ratio: f32,
+    },
 }
 
 /// `matches0` `[M]` (−1 = unmatched) by a baseline.

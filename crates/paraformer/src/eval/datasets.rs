@@ -25,23 +25,36 @@ use crate::features::{features_from_safetensors, Features};
 /// Two images related by a homography (image 0 → image 1).
 #[derive(Debug, Clone, PartialEq)]
 pub struct HomographyPair {
+    /// Name of image 0 (file name).
     pub name0: String,
+    /// Name of image 1.
     pub name1: String,
+    /// Path of image 0.
     pub image0: PathBuf,
+    /// Path of image 1.
     pub image1: PathBuf,
+    /// Homography mapping pixels of image 0 to image 1.
     pub h: Matrix3<f64>,
 }
 
 /// Two calibrated images with their relative pose `x1 = R·x0 + t`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PosePair {
+    /// Name of image 0 (file name).
     pub name0: String,
+    /// Name of image 1.
     pub name1: String,
+    /// Path of image 0.
     pub image0: PathBuf,
+    /// Path of image 1.
     pub image1: PathBuf,
+    /// Intrinsics of image 0.
     pub k0: Matrix3<f64>,
+    /// Intrinsics of image 1.
     pub k1: Matrix3<f64>,
+    /// Relative rotation `R` (camera 0 → camera 1).
     pub rotation: Matrix3<f64>,
+    /// Relative translation `t` (camera 0 → camera 1).
     pub translation: Vector3<f64>,
 }
 

@@ -11,11 +11,15 @@ use crate::geometry::Point;
 /// Labels per keypoint: `j ≥ 0` matched to keypoint j, [`UNMATCHED`], or [`IGNORED`].
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct GroundTruth {
+    /// Label of each keypoint of image 0.
     pub matches0: Vec<i64>,
+    /// Label of each keypoint of image 1.
     pub matches1: Vec<i64>,
 }
 
+/// The keypoint has no true match (it projects far from every keypoint, or outside).
 pub const UNMATCHED: i64 = -1;
+/// The keypoint is neither matched nor unmatched (ambiguous), and is left out of the metrics.
 pub const IGNORED: i64 = -2;
 
 /// Ground truth for keypoints of two images related by `h` (image 0 → image 1).

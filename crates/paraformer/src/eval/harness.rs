@@ -19,7 +19,9 @@ use crate::Matcher;
 
 /// A matcher to evaluate: a descriptor baseline or learned weights.
 pub enum MatcherSpec {
+    /// A descriptor baseline, with its display name.
     Baseline(String, Baseline),
+    /// A learned matcher, with its display name.
     Learned(String, Box<Matcher>),
 }
 
@@ -55,6 +57,7 @@ impl MatcherSpec {
         })
     }
 
+    /// The display name (`mnn`, `paraformer-xfeat`, a weights file's stem).
     pub fn name(&self) -> &str {
         match self {
             Self::Baseline(n, _) | Self::Learned(n, _) => n,
@@ -90,15 +93,21 @@ pub fn correspondences(f0: &Features, f1: &Features, m0: &[i64]) -> (Vec<Point>,
 /// One row of the homography table.
 #[derive(Debug, Clone, Serialize)]
 pub struct HomographyRow {
+    /// Matcher name.
     pub matcher: String,
+    /// Pairs evaluated.
     pub pairs: usize,
     /// AUC of the corner error at 1, 3, 5, 10 px (percent).
     pub auc: [f64; 4],
+    /// Match precision against the ground truth (percent).
     pub precision: f64,
+    /// Match recall (percent).
     pub recall: f64,
+    /// F1 of precision and recall (percent).
     pub f1: f64,
     /// Mean matching accuracy at 1..10 px (percent).
     pub mma: Vec<f64>,
+    /// Matches per pair.
     pub mean_matches: f64,
 }
 
@@ -149,13 +158,17 @@ pub fn eval_homography(
 /// One row of the pose table.
 #[derive(Debug, Clone, Serialize)]
 pub struct PoseRow {
+    /// Matcher name.
     pub matcher: String,
+    /// Pairs evaluated.
     pub pairs: usize,
     /// Exact AUC of max(angle R, angle t) at 5, 10, 20° (percent).
     pub auc: [f64; 3],
     /// Approximate (histogram) AUC at 5, 10, 20° (percent).
     pub auc_approx: [f64; 3],
+    /// Matches per pair.
     pub mean_matches: f64,
+    /// Essential-matrix inliers per pair.
     pub mean_inliers: f64,
 }
 

@@ -64,11 +64,17 @@ pub fn homography_corner_error(h_est: &Matrix3<f64>, h_gt: &Matrix3<f64>, width:
 /// Precision, recall and F1 of predicted matches against ground truth.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct PrecisionRecall {
+    /// True positives / predicted matches.
     pub precision: f64,
+    /// True positives / ground-truth matches.
     pub recall: f64,
+    /// Harmonic mean of precision and recall.
     pub f1: f64,
+    /// Predicted matches that are true.
     pub true_positives: usize,
+    /// Predicted matches (keypoints of image 0 not in IGNORED).
     pub predicted: usize,
+    /// Ground-truth matches.
     pub positives: usize,
 }
 

@@ -16,7 +16,9 @@ use crate::pooling::SplitMix64;
 /// How hard the warps are.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SyntheticConfig {
+    /// Pairs to make.
     pub count: usize,
+    /// Seed of the warps (pairs are a pure function of it).
     pub seed: u64,
     /// 0 = identity, 1 = strong: corner shifts up to 25% of the size, rotation up to
     /// ±45°, scale 0.7–1.3.

@@ -81,6 +81,7 @@ impl Estimator for FundamentalEstimator {
 /// by `focal` so that the threshold stays in pixels.
 #[derive(Debug, Clone, Copy)]
 pub struct EssentialEstimator {
+    /// Mean focal length in pixels (scales the Sampson residual back to pixels).
     pub focal: f64,
 }
 
@@ -117,10 +118,15 @@ pub fn to_camera(k: &Matrix3<f64>, points: &[Point]) -> Option<Vec<Point>> {
 /// A relative pose `x1 = R·x0 + t` (t of unit length) with its inliers.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RelativePose {
+    /// Rotation `R` from camera 0 to camera 1.
     pub rotation: Matrix3<f64>,
+    /// Translation direction `t` (unit length).
     pub translation: Vector3<f64>,
+    /// The essential matrix it was decomposed from.
     pub essential: Matrix3<f64>,
+    /// Inlier mask, one entry per correspondence.
     pub inliers: Vec<bool>,
+    /// Number of inliers.
     pub num_inliers: usize,
 }
 

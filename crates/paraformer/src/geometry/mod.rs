@@ -15,10 +15,18 @@ pub type Point = [f64; 2];
 /// Why no model could be estimated.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum NoModel {
+    /// Fewer correspondences than one minimal sample.
     #[error("need at least {needed} correspondences, got {got}")]
-    TooFewPoints { needed: usize, got: usize },
+    TooFewPoints {
+        /// Points one minimal sample needs.
+        needed: usize,
+        /// Points given.
+        got: usize,
+    },
+    /// Every sample was degenerate.
     #[error("the correspondences are degenerate (collinear or coincident points)")]
     Degenerate,
+    /// No hypothesis had the minimum number of inliers (given here).
     #[error("no hypothesis reached the minimum of {0} inliers")]
     NoConsensus(usize),
 }
@@ -47,14 +55,19 @@ impl Default for RansacConfig {
 /// A model fitted by RANSAC, with its inlier mask.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RansacResult<M> {
+    /// The best model, refitted on its inliers.
     pub model: M,
+    /// Inlier mask, one entry per correspondence.
     pub inliers: Vec<bool>,
+    /// Number of inliers.
     pub num_inliers: usize,
+    /// Hypotheses drawn.
     pub iterations: usize,
 }
 
 /// A minimal-sample model family.
 pub trait Estimator {
+    /// What one hypothesis is (a 3×3 matrix for homographies and epipolar geometry).
     type Model: Clone;
     /// Points per minimal sample.
     const SAMPLE_SIZE: usize;
