@@ -322,3 +322,28 @@ def test_gil_is_released_while_matching(golden_weights):
         counter += 1
     worker.join()
     assert counter > 1000, f"the main thread ran only {counter} loop iterations while matching"
+
+
+def test_config_shows_only_the_fields_the_model_uses():
+    c = paraformer.Matcher.pretrained("paraformer-xfeat").config
+    assert c["model"] == "paraformer" and "layer_names" not in c and "stage_dims" not in c
+    u = paraformer.Matcher.pretrained("paraformer-u-xfeat").config
+    assert "stage_dims" in u and "dim" not in u and "num_layers" not in u
+    assert paraformer.flops(u, 512, 512) > 0  # the trimmed config reads back as the same model
+
+
+def test_too_small_image_file_is_named(tmp_path):
+    import struct
+    import zlib
+
+    def png(w, h):
+        raw = b"".join(b"\x00" + b"\x80" * w for _ in range(h))
+        def chunk(t, d):
+            return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
+        return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+                + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+    p = tmp_path / "tiny.png"
+    p.write_bytes(png(16, 16))
+    with pytest.raises(ValueError, match=r"tiny\.png.*32×32"):
+        paraformer.extract(p)

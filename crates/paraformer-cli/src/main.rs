@@ -59,7 +59,8 @@ enum Command {
     },
     /// Print the config and tensor names of a weights file, after a strict check.
     Inspect {
-        weights: PathBuf,
+        /// A shipped matcher name (paraformer-xfeat, paraformer-u-xfeat) or a weights file.
+        weights: String,
     },
     /// Multiply-accumulates per model and keypoint count (SPEC §10, the paper's Table 7).
     Flops {
@@ -240,7 +241,7 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             }
             println!("paper (2048): SuperGlue 125.85, ParaFormer 104.22, ParaFormer-U 61.67");
             if let Some(path) = csv {
-                std::fs::write(&path, rows).map_err(|source| paraformer::Error::Io { path: path.clone(), source })?;
+                std::fs::write(&path, rows).map_err(|source| paraformer::Error::Write { path: path.clone(), source })?;
             }
         }
         Command::Bench { model, keypoints, repeat } => {
@@ -293,13 +294,27 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             match_images(MatchArgs { image0, image1, matcher, weights, max_keypoints, geometry, threshold, out, json, pretty, rotations })?
         }
         Command::Inspect { weights } => {
-            let w = Weights::from_file(&weights)?;
+            // One way to name a matcher everywhere: a shipped name, else a file.
+            let w = match paraformer::matcher::PRETRAINED.iter().find(|p| p.0 == weights) {
+                Some((_, bytes)) => Weights::from_bytes(bytes)?,
+                None => Weights::from_file(&weights)?,
+            };
             let matcher = Matcher::from_weights(&w)?;
-            println!("{}", matcher.config().to_json());
+            println!("{}", matcher.config().to_json_used());
             println!("{} tensors, all present with the expected shapes", w.names().count());
         }
     }
     Ok(())
+}
+
+/// XFeat's errors about "image" name the file instead.
+fn name_image<T>(r: paraformer::Result<T>, path: &std::path::Path) -> paraformer::Result<T> {
+    r.map_err(|e| match e {
+        paraformer::Error::InvalidInput { argument, reason } if argument == "image" => {
+            paraformer::Error::InvalidInput { argument: path.display().to_string(), reason }
+        }
+        e => e,
+    })
 }
 
 fn input_error(argument: impl Into<String>, reason: impl ToString) -> paraformer::Error {
@@ -349,7 +364,7 @@ fn draw(image0: &PathBuf, image1: &PathBuf, x0: &[[f64; 2]], x1: &[[f64; 2]], in
     let load = |p: &PathBuf| image::open(p).map(|i| i.to_rgb8()).map_err(|e| input_error(p.display().to_string(), e));
     let lines: Vec<_> = x0.iter().zip(x1).zip(inliers).map(|((a, b), &i)| (*a, *b, i)).collect();
     let canvas = paraformer::eval::draw::draw_matches(&load(image0)?, &load(image1)?, &lines);
-    canvas.save(out).map_err(|e| input_error(out.display().to_string(), e))
+    canvas.save(out).map_err(|e| paraformer::Error::Write { path: out.clone(), source: std::io::Error::other(e) })
 }
 
 struct MatchArgs {
@@ -399,7 +414,7 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     let (img0, img1) = (GrayImage::open(&a.image0)?, GrayImage::open(&a.image1)?);
     let t_decode = ms(t);
     let t = Instant::now();
-    let f0 = xfeat.detect_and_compute(&img0, Some(a.max_keypoints))?;
+    let f0 = name_image(xfeat.detect_and_compute(&img0, Some(a.max_keypoints)), &a.image0)?;
     let t_extract0 = ms(t);
     // Image1 as given, and with --rotations 4 also turned by 90, 180, 270°: the turn with
     // the most inliers is kept, its points mapped back into image1's own frame.
@@ -407,7 +422,7 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     let mut best: Option<(usize, paraformer::Features, Vec<i64>, Vec<[f64; 2]>, Vec<[f64; 2]>, Fit)> = None;
     for quarters in 0..a.rotations {
         let t = Instant::now();
-        let f1 = xfeat.detect_and_compute(&img1.rotate90(quarters), Some(a.max_keypoints))?;
+        let f1 = name_image(xfeat.detect_and_compute(&img1.rotate90(quarters), Some(a.max_keypoints)), &a.image1)?;
         t_extract1 += ms(t);
         let t = Instant::now();
         let m0 = spec.matches(&f0, &f1)?;
@@ -462,7 +477,7 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
         });
         let text = if a.pretty { serde_json::to_string_pretty(&value) } else { serde_json::to_string(&value) }
             .map_err(|e| input_error("--json", e))?;
-        std::fs::write(path, text).map_err(|source| paraformer::Error::Io { path: path.clone(), source })?;
+        std::fs::write(path, text).map_err(|source| paraformer::Error::Write { path: path.clone(), source })?;
         println!("wrote {}", path.display());
     }
     Ok(())
@@ -485,7 +500,7 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
     let write_json = |path: &Option<PathBuf>, value: serde_json::Value| -> paraformer::Result<()> {
         if let Some(p) = path {
             let text = serde_json::to_string_pretty(&value).unwrap_or_default();
-            std::fs::write(p, text).map_err(|source| paraformer::Error::Io { path: p.clone(), source })?;
+            std::fs::write(p, text).map_err(|source| paraformer::Error::Write { path: p.clone(), source })?;
             println!("wrote {}", p.display());
         }
         Ok(())

@@ -153,3 +153,23 @@ fn demo_runs_from_any_folder() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(text.contains("matches in"), "{text}");
 }
+
+#[test]
+fn matchers_are_named_alike_and_errors_name_the_file() {
+    let (ok, out, err) = run(&["inspect", "paraformer-xfeat"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("\"model\":\"paraformer\"") && !out.contains("layer_names") && !out.contains("stage_dims"), "{out}");
+    let (ok, out, _) = run(&["inspect", "paraformer-u-xfeat"]);
+    assert!(ok && out.contains("stage_dims") && !out.contains("\"num_layers\""), "{out}");
+    let missing_dir = std::env::temp_dir().join("paraformer-no-such-dir").join("m.png");
+    let (ok, _, err) = run(&["match", &sample("coffee_0.jpg"), &sample("coffee_1.jpg"), "--max-keypoints", "256",
+                              "--out", missing_dir.to_str().unwrap()]);
+    assert!(!ok && err.contains("cannot write") && err.contains("m.png"), "{err}");
+    let (ok, _, err) = run(&["match", &sample("coffee_0.jpg"), &sample("coffee_1.jpg"), "--weights", &sample("coffee_0.jpg")]);
+    assert!(!ok && err.contains("coffee_0.jpg") && err.contains("safetensors"), "{err}");
+    let tiny = std::env::temp_dir().join(format!("paraformer-tiny-{}.png", std::process::id()));
+    image::GrayImage::new(16, 16).save(&tiny).expect("writes");
+    let (ok, _, err) = run(&["match", tiny.to_str().unwrap(), &sample("coffee_1.jpg")]);
+    assert!(!ok && err.contains(tiny.to_str().unwrap()) && err.contains("32×32"), "{err}");
+    let _ = std::fs::remove_file(&tiny);
+}

@@ -174,7 +174,7 @@ impl PyMatcher {
     ///     A JSON object string.
     #[getter]
     fn config_json(&self) -> String {
-        self.inner.config().to_json()
+        self.inner.config().to_json_used()
     }
 
     /// Matches one pair.
@@ -608,7 +608,7 @@ fn extract(py: Python<'_>, pixels: PyBackedBytes, height: usize, width: usize, c
 #[pyo3(signature = (path, top_k))]
 fn extract_file(py: Python<'_>, path: PathBuf, top_k: usize) -> PyResult<Extracted> {
     let xf = xfeat()?;
-    py.detach(|| xf.detect_and_compute(&GrayImage::open(&path)?, Some(top_k))).map(extracted).map_err(to_py_err)
+    py.detach(|| xf.detect_and_compute_file(&path, Some(top_k))).map(extracted).map_err(to_py_err)
 }
 
 /// Sets the process-wide memory limit of matching and extraction.

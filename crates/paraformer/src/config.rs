@@ -227,6 +227,25 @@ impl Config {
         serde_json::to_string(self).unwrap_or_default()
     }
 
+    /// JSON of the fields this model uses (`to_json` writes every field): SuperGlue has no
+    /// stages, pooling or parallel switches; ParaFormer no `layer_names` or stages;
+    /// ParaFormer-U no `dim`, `num_layers` or `layer_names`. Reading it back with
+    /// [`Config::from_json`] gives the same model.
+    pub fn to_json_used(&self) -> String {
+        let mut v = serde_json::to_value(self).unwrap_or_default();
+        let unused: &[&str] = match self.model {
+            ModelKind::Superglue => &["stage_depths", "stage_dims", "pooling", "pooling_seed", "parallel", "num_layers"],
+            ModelKind::Paraformer => &["layer_names", "stage_depths", "stage_dims", "pooling", "pooling_seed"],
+            ModelKind::ParaformerU => &["dim", "num_layers", "layer_names"],
+        };
+        if let Some(map) = v.as_object_mut() {
+            for k in unused {
+                map.remove(*k);
+            }
+        }
+        v.to_string()
+    }
+
     /// The model width `C` that the encoder and `final_proj` use.
     pub fn model_dim(&self) -> usize {
         match self.model {

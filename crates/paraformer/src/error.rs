@@ -3,8 +3,9 @@
 use std::fmt;
 use std::path::PathBuf;
 
-/// Everything that can go wrong when loading weights or matching.
-#[derive(Debug, thiserror::Error)]
+/// Everything that can go wrong when loading weights or matching. Its `Debug` form is
+/// the message itself, so that `?` in a program's `main` prints a readable line.
+#[derive(thiserror::Error)]
 pub enum Error {
     /// A file (weights, image, dataset) could not be read from disk.
     #[error("cannot read {}: {source}", path.display())]
@@ -12,6 +13,15 @@ pub enum Error {
         /// The file.
         path: PathBuf,
         /// What the operating system said (not found, permission denied, …).
+        #[source]
+        source: std::io::Error,
+    },
+    /// A file (an output picture, a JSON report) could not be written.
+    #[error("cannot write {}: {source}", path.display())]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// What the operating system or the encoder said.
         #[source]
         source: std::io::Error,
     },
@@ -50,6 +60,12 @@ pub enum Error {
     /// An internal tensor operation failed (a bug: please report it).
     #[error("tensor operation failed: {0}")]
     Tensor(#[from] candle_core::Error),
+}
+
+impl fmt::Debug for Error {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        fmt::Display::fmt(self, f)
+    }
 }
 
 impl Error {

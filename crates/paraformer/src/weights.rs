@@ -59,7 +59,12 @@ impl Weights {
     pub fn from_file(path: impl AsRef<Path>) -> Result<Weights> {
         let path = path.as_ref();
         let bytes = std::fs::read(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
-        Weights::from_bytes(&bytes)
+        // Name the file in format and config errors.
+        Weights::from_bytes(&bytes).map_err(|e| match e {
+            Error::WeightsFormat(m) => Error::WeightsFormat(format!("{}: {m}", path.display())),
+            Error::Config(m) => Error::Config(format!("{}: {m}", path.display())),
+            e => e,
+        })
     }
 
     /// Parses safetensors bytes. Truncated or corrupted data is [`Error::WeightsFormat`];

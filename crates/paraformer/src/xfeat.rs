@@ -515,6 +515,21 @@ impl XFeat {
         &self.config
     }
 
+    /// [`XFeat::detect_and_compute`] on an image file; errors about the image (too small,
+    /// over the memory limit) name the file.
+    pub fn detect_and_compute_file(&self, path: impl AsRef<Path>, top_k: Option<usize>) -> Result<Features> {
+        let path = path.as_ref();
+        self.detect_and_compute(&GrayImage::open(path)?, top_k).map_err(|e| match e {
+            Error::InvalidInput { argument, reason } if argument == "image" => {
+                Error::InvalidInput { argument: path.display().to_string(), reason }
+            }
+            Error::Resource { what, needed, limit } => {
+                Error::Resource { what: format!("{what} ({})", path.display()), needed, limit }
+            }
+            e => e,
+        })
+    }
+
     /// Sparse keypoints and descriptors of an image, best score first; `top_k`
     /// overrides the config's. Images smaller than 32×32 pixels are an error.
     pub fn detect_and_compute(&self, img: &GrayImage, top_k: Option<usize>) -> Result<Features> {

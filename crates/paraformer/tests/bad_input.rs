@@ -434,3 +434,10 @@ fn a_match_beyond_the_memory_limit_is_an_error_not_an_abort() {
     let err = m.match_pair_with(&f, &f, opts).expect_err("too large");
     assert!(matches!(err, Error::Resource { .. }) && err.to_string().contains("60000 × 60000"), "{err}");
 }
+
+#[test]
+fn debug_form_of_errors_is_the_message() {
+    let err = Matcher::pretrained("nope").expect_err("unknown name");
+    assert_eq!(format!("{err:?}"), err.to_string());
+    assert!(err.to_string().contains("paraformer-xfeat"), "{err}");
+}
