@@ -78,12 +78,16 @@ enum Command {
     },
     /// Write seeded synthetic homography pairs (PNG + homographies.txt) from a folder of photos.
     Synth {
+        /// Folder of photos to warp.
         #[arg(long)]
         photos: PathBuf,
+        /// Output folder (PNG pairs and homographies.txt).
         #[arg(long)]
         out: PathBuf,
+        /// Pairs to write.
         #[arg(long, default_value_t = 200)]
         count: usize,
+        /// Seed of the warps (the pairs are a pure function of it).
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// 0 (identity) to 1 (corner shifts 25%, rotation ±45°, scale 0.7–1.3).
@@ -93,10 +97,12 @@ enum Command {
     /// Match two images end to end: XFeat keypoints and descriptors, a matcher, a robust
     /// geometric model; prints counts, the model and a timing breakdown.
     Match {
+        /// First image (PNG, JPEG, PNM, BMP, TIFF, WebP).
         image0: PathBuf,
+        /// Second image.
         image1: PathBuf,
-        /// nn, mnn, ratio, ratio:R or a pretrained name (default: the shipped
-        /// ParaFormer weights when present, else mnn).
+        /// paraformer-xfeat (default), paraformer-u-xfeat, nn, mnn, ratio, ratio:R, or a
+        /// weights file.
         #[arg(long, conflicts_with = "weights")]
         matcher: Option<String>,
         /// A weights file (safetensors with `paraformer.config` metadata) instead of --matcher.
@@ -127,12 +133,14 @@ enum Command {
     },
     /// Draw the matches of one pair side by side (inliers green, outliers red) into a PNG.
     Draw {
+        /// First image.
         image0: PathBuf,
+        /// Second image.
         image1: PathBuf,
         /// Features file holding both images (by file name).
         #[arg(long)]
         features: PathBuf,
-        /// nn, mnn, ratio, ratio:R, or a weights file.
+        /// paraformer-xfeat, paraformer-u-xfeat, nn, mnn, ratio, ratio:R, or a weights file.
         #[arg(long, default_value = "mnn")]
         matcher: String,
         /// Model that decides inliers: homography or fundamental.
@@ -168,7 +176,7 @@ enum EvalTask {
         /// Features file (safetensors: `{image}::keypoints|scores|descriptors|image_size`).
         #[arg(long)]
         features: PathBuf,
-        /// Comma-separated: nn, mnn, ratio, ratio:R, or weights files.
+        /// Comma-separated: paraformer-xfeat, paraformer-u-xfeat, nn, mnn, ratio, ratio:R, or weights files.
         #[arg(long, value_delimiter = ',', default_values_t = vec!["nn".to_string(), "mnn".to_string(), "ratio".to_string()])]
         matcher: Vec<String>,
         /// RANSAC inlier threshold in pixels.
@@ -183,8 +191,10 @@ enum EvalTask {
         /// A Strecha-format scene folder, or a pairs_with_gt.txt file (images beside it in images/).
         #[arg(long)]
         data: PathBuf,
+        /// Features file (safetensors: `{image}::keypoints|scores|descriptors|image_size`).
         #[arg(long)]
         features: PathBuf,
+        /// Comma-separated: paraformer-xfeat, paraformer-u-xfeat, nn, mnn, ratio, ratio:R, or weights files.
         #[arg(long, value_delimiter = ',', default_values_t = vec!["nn".to_string(), "mnn".to_string(), "ratio".to_string()])]
         matcher: Vec<String>,
         /// RANSAC inlier threshold (Sampson distance, pixels).
@@ -193,6 +203,7 @@ enum EvalTask {
         /// Strecha: pair images at most this far apart in the sequence.
         #[arg(long, default_value_t = 2)]
         max_gap: usize,
+        /// Write the results as JSON to this file.
         #[arg(long)]
         json: Option<PathBuf>,
     },

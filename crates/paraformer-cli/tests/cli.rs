@@ -173,3 +173,27 @@ fn matchers_are_named_alike_and_errors_name_the_file() {
     assert!(!ok && err.contains(tiny.to_str().unwrap()) && err.contains("32×32"), "{err}");
     let _ = std::fs::remove_file(&tiny);
 }
+
+#[test]
+fn every_subcommand_and_argument_has_help() {
+    let commands: [&[&str]; 10] = [&[], &["demo"], &["inspect"], &["flops"], &["eval", "homography"], &["eval", "pose"],
+                                   &["synth"], &["match"], &["draw"], &["bench"]];
+    for cmd in commands {
+        let mut args: Vec<&str> = cmd.to_vec();
+        args.push("--help");
+        let (ok, out, err) = run(&args);
+        assert!(ok, "{args:?}: {err}");
+        let mut section = false;
+        for line in out.lines() {
+            if line.ends_with(':') && !line.starts_with(' ') {
+                section = matches!(line, "Arguments:" | "Options:" | "Commands:");
+                continue;
+            }
+            if section && !line.trim().is_empty() && line.starts_with("  ") && !line.starts_with("          ") {
+                // "  <NAME>  text" / "  --flag <V>  text": something after the name column
+                let described = line.trim().splitn(2, "  ").nth(1).is_some_and(|t| !t.trim().is_empty());
+                assert!(described, "{args:?}: no help for `{}`", line.trim());
+            }
+        }
+    }
+}
