@@ -166,6 +166,20 @@ enum Command {
     },
 }
 
+/// What both evaluations take besides their data.
+#[derive(clap::Args)]
+struct EvalArgs {
+    /// Features file (safetensors: `{image}::keypoints|scores|descriptors|image_size`).
+    #[arg(long)]
+    features: PathBuf,
+    /// Comma-separated: paraformer-xfeat, paraformer-u-xfeat, nn, mnn, ratio, ratio:R, or weights files.
+    #[arg(long, value_delimiter = ',', default_values_t = vec!["nn".to_string(), "mnn".to_string(), "ratio".to_string()])]
+    matcher: Vec<String>,
+    /// Write the results as JSON to this file.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
 #[derive(Subcommand)]
 enum EvalTask {
     /// Homography estimation: corner-error AUC@1/3/5/10 px, precision/recall/F1, MMA.
@@ -173,39 +187,25 @@ enum EvalTask {
         /// An HPatches-style folder (img1..N + H1toNp / H_1_N) or a homographies.txt list.
         #[arg(long)]
         data: PathBuf,
-        /// Features file (safetensors: `{image}::keypoints|scores|descriptors|image_size`).
-        #[arg(long)]
-        features: PathBuf,
-        /// Comma-separated: paraformer-xfeat, paraformer-u-xfeat, nn, mnn, ratio, ratio:R, or weights files.
-        #[arg(long, value_delimiter = ',', default_values_t = vec!["nn".to_string(), "mnn".to_string(), "ratio".to_string()])]
-        matcher: Vec<String>,
+        #[command(flatten)]
+        common: EvalArgs,
         /// RANSAC inlier threshold in pixels.
         #[arg(long, default_value_t = 3.0)]
         threshold: f64,
-        /// Write the results as JSON to this file.
-        #[arg(long)]
-        json: Option<PathBuf>,
     },
     /// Relative pose: AUC@5/10/20° of max(angle R, angle t), exact and approximate.
     Pose {
         /// A Strecha-format scene folder, or a pairs_with_gt.txt file (images beside it in images/).
         #[arg(long)]
         data: PathBuf,
-        /// Features file (safetensors: `{image}::keypoints|scores|descriptors|image_size`).
-        #[arg(long)]
-        features: PathBuf,
-        /// Comma-separated: paraformer-xfeat, paraformer-u-xfeat, nn, mnn, ratio, ratio:R, or weights files.
-        #[arg(long, value_delimiter = ',', default_values_t = vec!["nn".to_string(), "mnn".to_string(), "ratio".to_string()])]
-        matcher: Vec<String>,
+        #[command(flatten)]
+        common: EvalArgs,
         /// RANSAC inlier threshold (Sampson distance, pixels).
         #[arg(long, default_value_t = 1.0)]
         threshold: f64,
         /// Strecha: pair images at most this far apart in the sequence.
         #[arg(long, default_value_t = 2)]
         max_gap: usize,
-        /// Write the results as JSON to this file.
-        #[arg(long)]
-        json: Option<PathBuf>,
     },
 }
 
@@ -517,7 +517,7 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
         Ok(())
     };
     match task {
-        EvalTask::Homography { data, features, matcher, threshold, json } => {
+        EvalTask::Homography { data, common: EvalArgs { features, matcher, json }, threshold } => {
             let pairs = if data.is_file() { datasets::read_homography_list(&data)? } else { datasets::read_hpatches_folder(&data)? };
             let feats = datasets::read_features(&features)?;
             let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
@@ -536,7 +536,7 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
             }
             write_json(&json, serde_json::json!({ "task": "homography", "data": data, "features": features, "rows": rows }))?;
         }
-        EvalTask::Pose { data, features, matcher, threshold, max_gap, json } => {
+        EvalTask::Pose { data, common: EvalArgs { features, matcher, json }, threshold, max_gap } => {
             let pairs = if data.is_file() {
                 let dir = data.parent().map(|p| p.join("images")).unwrap_or_default();
                 datasets::read_pairs_with_gt(&data, &dir)?
