@@ -93,7 +93,7 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
         raise ValueError(f"backend: expected 'local' or 'ray', got {backend!r}")
     if ray_options:
         raise TypeError(f"extract: options {sorted(ray_options)} are for backend='ray'")
-    workers = num_workers or 2
+    workers = 2 if num_workers is None else num_workers
     if workers < 1:
         raise ValueError(f"num_workers: expected a positive int, got {num_workers!r}")
 

@@ -110,7 +110,7 @@ def _stream(ds, batch: int, handle: Callable[[dict], int], total: int, desc: str
             pb.set_postfix_str(f"{done / max(time.time() - t0, 1e-9):.1f} {unit}/s")
 
 
-def _quiet_data(ray, progress: bool) -> None:
+def _quiet_data(ray) -> None:
     ctx = ray.data.DataContext.get_current()
     ctx.enable_progress_bars = False  # ours shows the same count, from the single writer
     ctx.verbose_stats_logs = False
@@ -124,7 +124,7 @@ def extract_ray(image_dir: Path, features_path: Path, names: Sequence[str], *, m
                 batch: int = 4) -> Path:
     """``extract`` on Ray: one XFeat per actor; the driver writes ``features_path``."""
     ray = init(address)
-    _quiet_data(ray, progress)
+    _quiet_data(ray)
     workers, threads = _pool_options(ray, num_workers, threads_per_worker)
     ds = ray.data.from_items([{"name": n} for n in names], override_num_blocks=max(1, min(len(names), 4 * workers)))
     ds = ds.map_batches(XFeatWorker, fn_constructor_kwargs={"image_dir": os.fspath(image_dir),
@@ -160,7 +160,7 @@ def match_pairs_ray(features_path: Path, pairs: Sequence[tuple[str, str]], match
         raise ValueError("matcher: backend='ray' takes a pretrained name, a baseline or a weights file "
                          "(each worker loads its own), not a Matcher object")
     ray = init(address)
-    _quiet_data(ray, progress)
+    _quiet_data(ray)
     workers, threads = _pool_options(ray, num_workers, threads_per_worker)
     names = sorted({n for p in pairs for n in p})
     with open_h5(features_path, "r") as ffd:
