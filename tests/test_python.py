@@ -347,3 +347,26 @@ def test_too_small_image_file_is_named(tmp_path):
     p.write_bytes(png(16, 16))
     with pytest.raises(ValueError, match=r"tiny\.png.*32×32"):
         paraformer.extract(p)
+
+
+def test_precision_keyword(golden_weights, golden_case):
+    data = golden_weights.read_bytes()
+    fp32 = paraformer.Matcher.from_file(golden_weights)
+    assert fp32.precision == "fp32" and "precision='fp32'" in repr(fp32)
+    made = [paraformer.Matcher.from_file(golden_weights, precision="bf16"),
+            paraformer.Matcher.from_bytes(data, precision="bf16"),
+            paraformer.Matcher(fp32.config, data, precision="bf16"),
+            paraformer.Matcher.pretrained("paraformer-xfeat", precision="bf16")]
+    for m in made:
+        assert m._inner.precision[0] == "bf16"
+        assert m.precision in ("bf16", "fp32")  # fp32 where the CPU has no AVX-512 BF16
+    c = golden_case
+    ref, out = fp32.match(*args(c), **kw(c)), made[0].match(*args(c), **kw(c))
+    assert out["matches0"].shape == ref["matches0"].shape
+    if made[0].precision == "fp32":
+        np.testing.assert_array_equal(out["matches0"], ref["matches0"])
+    for bad in ("fp16", "FP32", 32, None):
+        with pytest.raises(ValueError, match="precision"):
+            paraformer.Matcher.from_file(golden_weights, precision=bad)
+        with pytest.raises(ValueError, match="precision"):
+            paraformer.Matcher.pretrained(precision=bad)

@@ -1,12 +1,15 @@
-//! Criterion benchmarks at the paper's full widths (C = 256, random weights made at
-//! bench time): end-to-end latency of the three models at 512/1024/2048 keypoints, and
-//! the parts separately (one parallel layer, one serial layer, Sinkhorn, encoder).
+//! Criterion benchmarks (random weights made at bench time): end-to-end latency of the
+//! three models at the paper's full widths (C = 256) at 512/1024/2048 keypoints; the
+//! shipped configurations (C = 64 with 4 heads, and 2 heads) in fp32 and bf16; the parts
+//! separately (one parallel layer, one serial layer, Sinkhorn, encoder); and one C = 64
+//! parallel layer through the fused narrow-head kernels against the general path.
 //!
 //!     cargo bench -p paraformer-benches
 //!     cargo bench -p paraformer-benches -- end_to_end/paraformer/2048   # one case
+//!     cargo bench -p paraformer-benches -- shipped                      # shipped configs
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use paraformer::kernels::{Ctx, Matrix};
+use paraformer::kernels::{Ctx, Matrix, Precision};
 use paraformer::layers::{ParallelLayer, SerialLayer};
 use paraformer::sinkhorn::log_optimal_transport_inplace;
 use paraformer::wave_pe::WavePe;
@@ -68,5 +71,41 @@ fn parts(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, end_to_end, parts);
+/// The shipped ParaFormer's shape: C = 64, 4 layers, `heads` heads, XFeat descriptors.
+fn shipped_config(heads: usize) -> Config {
+    let mut cfg = Config::paraformer();
+    (cfg.descriptor_dim, cfg.dim, cfg.num_heads, cfg.num_layers, cfg.sinkhorn_iterations) = (64, 64, heads, 4, 50);
+    cfg
+}
+
+fn shipped(c: &mut Criterion) {
+    let mut g = c.benchmark_group("shipped");
+    g.sample_size(10);
+    for heads in [4, 2] {
+        let base = Matcher::random(shipped_config(heads), 0).expect("random weights");
+        for k in [512, 2048] {
+            let (f0, f1) = (Features::random(k, 64, 1), Features::random(k, 64, 2));
+            for p in [Precision::Fp32, Precision::Bf16] {
+                let m = base.clone().with_precision(p);
+                g.bench_with_input(BenchmarkId::new(format!("c64_h{heads}_{}", p.name()), k), &k, |b, _| {
+                    b.iter(|| m.match_pair_with(&f0, &f1, MatchOptions::default()).expect("runs"))
+                });
+            }
+        }
+    }
+    // One C = 64 parallel layer at 2048 keypoints: fused kernels (fp32, bf16) and the general path.
+    let vb = random_var_builder(3);
+    let (x, y) = (random_matrix(2048, 64, 4), random_matrix(2048, 64, 5));
+    for heads in [4, 2] {
+        let layer = ParallelLayer::new(64, heads, ParallelSwitches::default(), vb.pp(format!("l{heads}"))).expect("layer");
+        let mut general = Ctx::default();
+        general.fused = false;
+        for (name, ctx) in [("general", general), ("fused_fp32", Ctx::default()), ("fused_bf16", Ctx::with_precision(Precision::Bf16))] {
+            g.bench_function(format!("layer_c64_h{heads}/{name}"), |b| b.iter(|| layer.forward(&ctx, &x, &y, false).expect("runs")));
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, end_to_end, shipped, parts);
 criterion_main!(benches);

@@ -17,6 +17,10 @@ struct Cli {
     /// default: 90% of the memory available. A call needing more fails with an error.
     #[arg(long, global = true, value_parser = parse_bytes)]
     memory_limit: Option<u64>,
+    /// Arithmetic of the learned matchers' attention: fp32 (default) or bf16 (bf16
+    /// operands, fp32 sums; needs AVX-512 BF16, elsewhere runs as fp32).
+    #[arg(long, global = true, default_value = "fp32", value_parser = ["fp32", "bf16"])]
+    precision: String,
     #[command(subcommand)]
     command: Command,
 }
@@ -152,9 +156,10 @@ enum Command {
         #[arg(long, default_value = "matches.png")]
         out: PathBuf,
     },
-    /// Time matching at the paper's widths with random weights, part by part.
+    /// Time matching with random weights, part by part, in --precision.
     Bench {
-        /// superglue, paraformer or paraformer_u (repeatable; default all three).
+        /// superglue, paraformer, paraformer_u (the paper's widths), a shipped matcher's
+        /// name (its config), or a config JSON file (repeatable; default the three presets).
         #[arg(long, value_delimiter = ',', default_values_t = vec!["superglue".to_string(), "paraformer".to_string(), "paraformer_u".to_string()])]
         model: Vec<String>,
         /// Keypoints per image.
@@ -209,9 +214,36 @@ enum EvalTask {
     },
 }
 
+/// The config `bench --model` names: a preset, a shipped matcher or a JSON file.
+fn bench_config(name: &str) -> paraformer::Result<Config> {
+    if let Some(p) = paraformer::matcher::PRETRAINED.iter().find(|p| p.0 == name) {
+        return Ok(Matcher::from_bytes(p.1)?.config().clone());
+    }
+    if name.ends_with(".json") {
+        let text = std::fs::read_to_string(name).map_err(|e| input_error("--model", format!("cannot read `{name}`: {e}")))?;
+        return Config::from_json(&text);
+    }
+    Config::preset(name)
+}
+
 const MODELS: [&str; 3] = ["superglue", "paraformer", "paraformer_u"];
 
+/// The `--precision` of this run, applied to every learned matcher the CLI builds.
+static PRECISION: std::sync::OnceLock<paraformer::Precision> = std::sync::OnceLock::new();
+
+fn precision() -> paraformer::Precision {
+    PRECISION.get().copied().unwrap_or_default()
+}
+
+/// A matcher by name or file, in this run's precision.
+fn matcher_spec(name: &str) -> paraformer::Result<paraformer::eval::harness::MatcherSpec> {
+    let mut spec = paraformer::eval::harness::MatcherSpec::parse(name)?;
+    spec.set_precision(precision());
+    Ok(spec)
+}
+
 fn run(cli: Cli) -> paraformer::Result<()> {
+    let _ = PRECISION.set(paraformer::Precision::parse(&cli.precision)?);
     if cli.memory_limit.is_some() {
         paraformer::memory::set_memory_limit(cli.memory_limit);
     }
@@ -223,7 +255,8 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             let matcher = match &weights {
                 Some(w) => Matcher::from_file(w)?,
                 None => Matcher::from_bytes(DEMO_WEIGHTS)?,
-            };
+            }
+            .with_precision(precision());
             let (f0, f1) = match &pair {
                 Some(p) => read_pair_file(p)?,
                 None => paraformer::read_pair_bytes(DEMO_PAIR)?,
@@ -258,9 +291,10 @@ fn run(cli: Cli) -> paraformer::Result<()> {
         Command::Bench { model, keypoints, repeat } => {
             println!("simd: {}, threads: {}", paraformer::kernels::simd_name(), rayon_threads());
             println!("{:<13} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>11}", "model", "kp", "total ms", "encoder", "layers", "final", "sinkhorn", "extract", "GFLOP/s net");
+            println!("precision: {} (runs as {})", precision().name(), precision().effective().name());
             for name in &model {
-                let cfg = Config::preset(name)?;
-                let matcher = Matcher::random(cfg.clone(), 0)?;
+                let cfg = bench_config(name)?;
+                let matcher = Matcher::random(cfg.clone(), 0)?.with_precision(precision());
                 for &k in &keypoints {
                     let (f0, f1) = (Features::random(k, cfg.descriptor_dim, 1), Features::random(k, cfg.descriptor_dim, 2));
                     matcher.profile(&f0, &f1, MatchOptions::default())?;
@@ -288,12 +322,11 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             println!("wrote {} pairs and {}", pairs.len(), out.join("homographies.txt").display());
         }
         Command::Draw { image0, image1, features, matcher, geometry, threshold, out } => {
-            use paraformer::eval::harness::MatcherSpec;
             let feats = paraformer::eval::datasets::read_features(&features)?;
             let name = |p: &PathBuf| p.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
             let get = |n: String| feats.get(&n).ok_or_else(|| paraformer::Error::InvalidInput { argument: "features".into(), reason: format!("no features for `{n}`") });
             let (f0, f1) = (get(name(&image0))?, get(name(&image1))?);
-            let spec = MatcherSpec::parse(&matcher)?;
+            let spec = matcher_spec(&matcher)?;
             let m0 = spec.matches(f0, f1)?;
             let (x0, x1) = paraformer::eval::harness::correspondences(f0, f1, &m0);
             let fit = fit_model(&geometry, &x0, &x1, threshold)?;
@@ -414,10 +447,10 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     let spec = match (&a.weights, &a.matcher) {
         (Some(w), _) => {
             let name = w.file_stem().map_or("weights".into(), |s| s.to_string_lossy().into_owned());
-            MatcherSpec::Learned(name, Box::new(paraformer::Matcher::from_file(w)?))
+            MatcherSpec::Learned(name, Box::new(paraformer::Matcher::from_file(w)?.with_precision(precision())))
         }
-        (None, Some(m)) => MatcherSpec::parse(m)?,
-        (None, None) => MatcherSpec::parse(&default_matcher())?,
+        (None, Some(m)) => matcher_spec(m)?,
+        (None, None) => matcher_spec(&default_matcher())?,
     };
     let xfeat = XFeat::pretrained()?;
     let t_load = ms(t);
@@ -523,7 +556,7 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
             let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
             let mut rows = Vec::new();
             for m in &matcher {
-                let spec = harness::MatcherSpec::parse(m)?;
+                let spec = matcher_spec(m)?;
                 rows.push(harness::eval_homography(&pairs, &feats, &spec, &cfg, progress(spec.name()))?);
             }
             println!("{} pairs from {}", pairs.len(), data.display());
@@ -547,7 +580,7 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
             let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
             let mut rows = Vec::new();
             for m in &matcher {
-                let spec = harness::MatcherSpec::parse(m)?;
+                let spec = matcher_spec(m)?;
                 rows.push(harness::eval_pose(&pairs, &feats, &spec, &cfg, progress(spec.name()))?);
             }
             println!("{} pairs from {}", pairs.len(), data.display());

@@ -11,7 +11,7 @@ use paraformer::features::f32_from_le;
 use paraformer::eval::{ground_truth, metrics};
 use paraformer::geometry::{epipolar, homography, NoModel, RansacConfig, RansacResult};
 use paraformer::nalgebra::Matrix3;
-use paraformer::{Config, Error, Features, GrayImage, MatchOptions, MatchOutput, Matcher, Weights, XFeat};
+use paraformer::{Config, Error, Features, GrayImage, MatchOptions, MatchOutput, Matcher, Precision, Weights, XFeat};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyValueError};
 use pyo3::prelude::*;
@@ -113,10 +113,11 @@ impl PyMatcher {
     /// Returns:
     ///     The matcher.
     #[staticmethod]
-    #[pyo3(signature = (path, /))]
-    fn from_file(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+    #[pyo3(signature = (path, /, precision = "fp32"))]
+    fn from_file(py: Python<'_>, path: PathBuf, precision: &str) -> PyResult<Self> {
+        let p = Precision::parse(precision).map_err(to_py_err)?;
         let m = py.detach(|| Matcher::from_file(&path)).map_err(to_py_err)?;
-        Ok(Self { inner: Arc::new(m) })
+        Ok(Self { inner: Arc::new(m.with_precision(p)) })
     }
 
     /// Loads trained weights shipped inside the package, by name.
@@ -126,10 +127,11 @@ impl PyMatcher {
     /// Returns:
     ///     The matcher.
     #[staticmethod]
-    #[pyo3(signature = (name, /))]
-    fn pretrained(py: Python<'_>, name: &str) -> PyResult<Self> {
+    #[pyo3(signature = (name, /, precision = "fp32"))]
+    fn pretrained(py: Python<'_>, name: &str, precision: &str) -> PyResult<Self> {
+        let p = Precision::parse(precision).map_err(to_py_err)?;
         let m = py.detach(|| Matcher::pretrained(name)).map_err(to_py_err)?;
-        Ok(Self { inner: Arc::new(m) })
+        Ok(Self { inner: Arc::new(m.with_precision(p)) })
     }
 
     /// Loads weights from bytes whose metadata holds the config.
@@ -139,10 +141,11 @@ impl PyMatcher {
     /// Returns:
     ///     The matcher.
     #[staticmethod]
-    #[pyo3(signature = (data, /))]
-    fn from_bytes(py: Python<'_>, data: PyBackedBytes) -> PyResult<Self> {
+    #[pyo3(signature = (data, /, precision = "fp32"))]
+    fn from_bytes(py: Python<'_>, data: PyBackedBytes, precision: &str) -> PyResult<Self> {
+        let p = Precision::parse(precision).map_err(to_py_err)?;
         let m = py.detach(|| Matcher::from_bytes(&data)).map_err(to_py_err)?;
-        Ok(Self { inner: Arc::new(m) })
+        Ok(Self { inner: Arc::new(m.with_precision(p)) })
     }
 
     /// Builds a matcher from an explicit config and a weights file or its bytes.
@@ -153,8 +156,9 @@ impl PyMatcher {
     /// Returns:
     ///     The matcher.
     #[staticmethod]
-    #[pyo3(signature = (config_json, weights, /))]
-    fn with_config(py: Python<'_>, config_json: &str, weights: WeightsArg) -> PyResult<Self> {
+    #[pyo3(signature = (config_json, weights, /, precision = "fp32"))]
+    fn with_config(py: Python<'_>, config_json: &str, weights: WeightsArg, precision: &str) -> PyResult<Self> {
+        let p = Precision::parse(precision).map_err(to_py_err)?;
         let config = Config::from_json(config_json).map_err(|e| PyValueError::new_err(format!("config: {e}")))?;
         let m = py
             .detach(|| {
@@ -165,7 +169,17 @@ impl PyMatcher {
                 Matcher::new(config, &w)
             })
             .map_err(to_py_err)?;
-        Ok(Self { inner: Arc::new(m) })
+        Ok(Self { inner: Arc::new(m.with_precision(p)) })
+    }
+
+    /// The attention precision asked for, and what runs on this CPU.
+    ///
+    /// Returns:
+    ///     `(asked, effective)`, each "fp32" or "bf16".
+    #[getter]
+    fn precision(&self) -> (&'static str, &'static str) {
+        let p = self.inner.precision();
+        (p.name(), p.effective().name())
     }
 
     /// The config as JSON, every field written out.

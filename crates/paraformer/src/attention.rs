@@ -12,13 +12,13 @@ use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::kernels::{exp_fast, exp_sub_accumulate, softmax_rows, Ctx, Matrix, SharedMut, View};
+use crate::kernels::{exp_fast, exp_sub_accumulate, softmax_rows, Ctx, Matrix, Precision, SharedMut, View};
 use crate::mlp::Linear;
 
 /// Query rows per block: a `BLOCK × N` score block stays in L2 for N ≲ 4096.
 const BLOCK: usize = 64;
 
-fn record(slot: &Mutex<Option<crate::Error>>, r: Result<()>) {
+pub(crate) fn record(slot: &Mutex<Option<crate::Error>>, r: Result<()>) {
     if let (Err(e), Ok(mut s)) = (r, slot.lock()) {
         s.get_or_insert(e);
     }
@@ -31,11 +31,23 @@ fn take(slot: Mutex<Option<crate::Error>>) -> Result<()> {
     }
 }
 
+/// Whether the fused narrow-head kernels take this call, and in bf16 or not.
+fn fused(ctx: &Ctx, d: usize) -> Option<bool> {
+    (cfg!(target_arch = "x86_64") && ctx.fused && crate::attention_fused::available(d)).then_some(ctx.precision == Precision::Bf16)
+}
+
 /// `softmax(q·kᵀ/√d)·v` for every head: `q` `[M, C]`, `k`, `v` `[N, C]` → `[M, C]`.
 /// With `col_sums`, also `Σ_h Σ_i A[h, i, j]` `[N]` (for attentional pooling).
 pub fn attention(ctx: &Ctx, q: View, k: View, v: View, heads: usize, col_sums: bool) -> Result<(Matrix, Option<Vec<f32>>)> {
     let (m, n, c) = (q.rows, k.rows, q.cols);
     let d = c / heads;
+    if let Some(bf16) = fused(ctx, d) {
+        ctx.add_macs(2 * (m * n * c) as u64);
+        // Column sums pick the keypoints that attentional pooling keeps: a discrete choice
+        // that bf16 rounding would flip, so those layers stay fp32.
+        #[cfg(target_arch = "x86_64")]
+        return crate::attention_fused::attention(q, k, v, heads, col_sums, bf16 && !col_sums);
+    }
     let scale = 1.0 / (d as f32).sqrt();
     let mut out = Matrix::zeros(m, c);
     let blocks = m.div_ceil(BLOCK);
@@ -86,6 +98,11 @@ pub fn attention(ctx: &Ctx, q: View, k: View, v: View, heads: usize, col_sums: b
 pub fn cross_attention_shared(ctx: &Ctx, qx: View, ky: View, vx: View, vy: View, heads: usize) -> Result<(Matrix, Matrix)> {
     let (m, n, c) = (qx.rows, ky.rows, qx.cols);
     let d = c / heads;
+    if let Some(bf16) = fused(ctx, d) {
+        ctx.add_macs(3 * (m * n * c) as u64);
+        #[cfg(target_arch = "x86_64")]
+        return crate::attention_fused::cross_attention_shared(qx, ky, vx, vy, heads, bf16);
+    }
     let scale = 1.0 / (d as f32).sqrt();
     let (mut out_x, mut out_y) = (Matrix::zeros(m, c), Matrix::zeros(n, c));
     let (dx, dy) = (SharedMut(out_x.data.as_mut_ptr()), SharedMut(out_y.data.as_mut_ptr()));

@@ -100,21 +100,76 @@ impl SharedMut {
     }
 }
 
-/// Per-call engine state: the thread count and a count of the multiply-accumulates
-/// of every matrix product performed (checked against `flops`).
+/// Arithmetic of the attention products.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
+pub enum Precision {
+    /// fp32 everywhere (the default; SPEC's numbers).
+    #[default]
+    Fp32,
+    /// bf16 operands with fp32 accumulation for the attention products at head widths
+    /// 16, 32 and 64, where the CPU has AVX-512 BF16 (see [`Precision::effective`]);
+    /// softmax, sums, the other layers and the attention whose column sums choose the
+    /// keypoints of ParaFormer-U's pooling stay fp32.
+    Bf16,
+}
+
+impl Precision {
+    /// Parses `"fp32"` or `"bf16"`.
+    pub fn parse(s: &str) -> Result<Self> {
+        match s {
+            "fp32" => Ok(Self::Fp32),
+            "bf16" => Ok(Self::Bf16),
+            other => Err(Error::InvalidInput { argument: "precision".into(), reason: format!("`{other}`; expected \"fp32\" or \"bf16\"") }),
+        }
+    }
+
+    /// The name `parse` reads.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Fp32 => "fp32",
+            Self::Bf16 => "bf16",
+        }
+    }
+
+    /// What runs on this CPU: bf16 needs AVX-512 BF16 and falls back to fp32 without it.
+    pub fn effective(self) -> Self {
+        match self {
+            Self::Bf16 if crate::attention_fused::bf16_available() => Self::Bf16,
+            _ => Self::Fp32,
+        }
+    }
+}
+
+/// Per-call engine state: the thread count, the attention precision, and a count of the
+/// multiply-accumulates of every matrix product performed (checked against `flops`).
 #[derive(Debug)]
 pub struct Ctx {
     pub threads: usize,
+    /// Attention arithmetic (already [`Precision::effective`]).
+    pub precision: Precision,
+    /// Use the fused narrow-head attention kernels where they apply (off: the general path,
+    /// the reference the fused kernels are tested against).
+    pub fused: bool,
     macs: AtomicU64,
 }
 
 impl Default for Ctx {
     fn default() -> Self {
-        Self { threads: rayon::current_num_threads().max(1), macs: AtomicU64::new(0) }
+        Self { threads: rayon::current_num_threads().max(1), precision: Precision::Fp32, fused: true, macs: AtomicU64::new(0) }
     }
 }
 
 impl Ctx {
+    /// A context with the given attention precision (downgraded to what the CPU runs).
+    pub fn with_precision(precision: Precision) -> Self {
+        Self { precision: precision.effective(), ..Self::default() }
+    }
+
+    /// Counts multiply-accumulates done outside [`Ctx::gemm`] (the fused kernels).
+    pub(crate) fn add_macs(&self, macs: u64) {
+        self.macs.fetch_add(macs, Ordering::Relaxed);
+    }
+
     pub fn macs(&self) -> u64 {
         self.macs.load(Ordering::Relaxed)
     }
@@ -200,7 +255,7 @@ impl Ctx {
 // ---- run-time dispatch ----------------------------------------------------------
 
 /// 0 = baseline, 3 = AVX2+FMA, 4 = AVX-512.
-fn simd_level() -> u8 {
+pub(crate) fn simd_level() -> u8 {
     static LEVEL: AtomicU8 = AtomicU8::new(u8::MAX);
     let l = LEVEL.load(Ordering::Relaxed);
     if l != u8::MAX {

@@ -36,6 +36,8 @@
 
 #[doc(hidden)]
 pub mod attention;
+#[doc(hidden)]
+pub mod attention_fused;
 pub mod config;
 pub mod error;
 pub mod eval;
@@ -64,6 +66,7 @@ pub use config::{Config, LayerKind, ModelKind, ParallelSwitches, Pooling, Positi
 pub use error::{Error, Result, TensorProblem};
 pub use features::{read_pair_bytes, read_pair_file, Features};
 pub use flops::{flops, Flops};
+pub use kernels::Precision;
 pub use matcher::{MatchOptions, MatchOutput, Matcher, Profile};
 pub use sinkhorn::Matrix;
 pub use weights::Weights;

@@ -10,7 +10,7 @@ use candle_nn::VarBuilder;
 use crate::config::{Config, ModelKind};
 use crate::error::{Error, Result};
 use crate::features::Features;
-use crate::kernels::{Ctx, Matrix};
+use crate::kernels::{Ctx, Matrix, Precision};
 use crate::layers::{ParallelLayer, SerialLayer};
 use crate::mlp::Linear;
 use crate::pooling::{Pool, Unpool};
@@ -249,6 +249,7 @@ pub const PRETRAINED: &[(&str, &[u8])] = &[
 pub struct Matcher {
     config: Config,
     network: Network,
+    precision: Precision,
 }
 
 impl Matcher {
@@ -287,7 +288,7 @@ impl Matcher {
     pub fn new(config: Config, weights: &Weights) -> Result<Self> {
         config.validate()?;
         let network = weights.build(|vb| Network::new(&config, vb))?;
-        Ok(Self { config, network })
+        Ok(Self { config, network, precision: Precision::Fp32 })
     }
 
     /// A matcher with deterministic random weights (for benchmarks and tests; it
@@ -295,12 +296,30 @@ impl Matcher {
     pub fn random(config: Config, seed: u64) -> Result<Self> {
         config.validate()?;
         let network = Network::new(&config, crate::weights::random_var_builder(seed))?;
-        Ok(Self { config, network })
+        Ok(Self { config, network, precision: Precision::Fp32 })
     }
 
     /// The config in use (every field as the model uses it).
     pub fn config(&self) -> &Config {
         &self.config
+    }
+
+    /// This matcher with its attention products in `precision`: [`Precision::Fp32`] (the
+    /// default, SPEC's numbers) or [`Precision::Bf16`] (bf16 operands, fp32 accumulation,
+    /// on CPUs with AVX-512 BF16; elsewhere it runs as fp32).
+    pub fn with_precision(mut self, precision: Precision) -> Self {
+        self.precision = precision;
+        self
+    }
+
+    /// Sets the precision in place (see [`Matcher::with_precision`]).
+    pub fn set_precision(&mut self, precision: Precision) {
+        self.precision = precision;
+    }
+
+    /// The precision asked for (what runs is [`Precision::effective`] of it).
+    pub fn precision(&self) -> Precision {
+        self.precision
     }
 
     /// Bytes a match of `m` × `n` keypoints needs at its peak; a call whose need exceeds
@@ -338,7 +357,7 @@ impl Matcher {
         let (matches, p) = if m == 0 || n == 0 {
             (Matches::none(m, n), Matrix::zeros(m + 1, n + 1))
         } else {
-            let ctx = Ctx::default();
+            let ctx = Ctx::with_precision(self.precision);
             let mut z = self.network.couplings(&ctx, f0, f1, &mut profile)?;
             profile.macs = ctx.macs();
             let t = Instant::now();

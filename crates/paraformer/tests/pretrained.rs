@@ -40,3 +40,36 @@ fn shipped_matchers_load_by_name_and_recover_the_sample_homography() {
     }
     assert!(Matcher::pretrained("nope").is_err());
 }
+
+/// bf16 attention (where the CPU has AVX-512 BF16) keeps ≥ 99% of the fp32 matches of the
+/// shipped matchers on the sample pair at 2048 keypoints; elsewhere it is fp32 exactly.
+#[test]
+fn bf16_keeps_the_fp32_matches_on_the_sample_pair() {
+    use paraformer::Precision;
+    let xf = XFeat::pretrained().expect("XFeat");
+    let f0 = xf.detect_and_compute(&GrayImage::open(sample("coffee_0.jpg")).expect("image"), Some(2048)).expect("features");
+    let f1 = xf.detect_and_compute(&GrayImage::open(sample("coffee_1.jpg")).expect("image"), Some(2048)).expect("features");
+    for (name, _) in paraformer::matcher::PRETRAINED {
+        let fp32 = Matcher::pretrained(name).expect("weights");
+        assert_eq!(fp32.precision(), Precision::Fp32, "fp32 is the default");
+        let bf16 = fp32.clone().with_precision(Precision::Bf16);
+        let (a, b) = (fp32.match_pair(&f0, &f1).expect("fp32"), bf16.match_pair(&f0, &f1).expect("bf16"));
+        if Precision::Bf16.effective() == Precision::Fp32 {
+            eprintln!("no AVX-512 BF16 here: bf16 runs as fp32");
+            assert_eq!(a, b, "{name}");
+            continue;
+        }
+        let same = a.matches0.iter().zip(&b.matches0).filter(|(x, y)| x == y).count();
+        let frac = same as f64 / a.matches0.len() as f64;
+        assert!(frac >= 0.99, "{name}: {same} of {} keypoints keep their match", a.matches0.len());
+    }
+}
+
+#[test]
+fn precision_names_parse_and_bad_ones_are_named() {
+    use paraformer::Precision;
+    assert_eq!(Precision::parse("fp32").expect("fp32"), Precision::Fp32);
+    assert_eq!(Precision::parse("bf16").expect("bf16"), Precision::Bf16);
+    let e = Precision::parse("fp16").expect_err("unknown").to_string();
+    assert!(e.contains("precision") && e.contains("fp16"), "{e}");
+}

@@ -64,6 +64,13 @@ impl MatcherSpec {
         }
     }
 
+    /// Runs a learned matcher's attention in `precision` (baselines have none).
+    pub fn set_precision(&mut self, precision: crate::Precision) {
+        if let Self::Learned(_, m) = self {
+            m.set_precision(precision);
+        }
+    }
+
     /// `matches0` for a pair.
     pub fn matches(&self, f0: &Features, f1: &Features) -> Result<Vec<i64>> {
         match self {

@@ -1,0 +1,735 @@
+//! Fused attention for narrow heads (head width 16, 32 or 64) on AVX-512 CPUs: the same
+//! results as [`crate::attention`] (SPEC §4–§5, softmax over keys; the shared cross
+//! attention's transposed softmax), computed in one pass per strip of 16 query rows.
+//!
+//! At head width 16–32 a score costs as few as 32 multiply-accumulates, so the general
+//! path (a GEMM for the scores, four passes for the softmax, a GEMM with a packed copy
+//! of the probabilities) spends most of its time outside arithmetic. Here queries are
+//! pre-scaled by `log2(e)/√d` (scores in base 2, one cheap `exp2`), the keys of each head
+//! are packed once in 16-column panels, the score strip stays in L1/L2, the softmax is
+//! unnormalised (rows are divided by their sums after the value product), and
+//! register-tiled micro-kernels do both products. With `bf16`, both products take bf16
+//! operands with fp32 accumulation (`vdpbf16ps`); maxima, exponentials and sums stay fp32.
+//!
+//! Every sum is taken in a fixed order (tasks are fixed blocks of rows, merged in
+//! order), so results do not depend on the thread count.
+
+#[cfg(target_arch = "x86_64")]
+pub use x86::{attention, available, bf16_available, cross_attention_shared};
+
+/// Elsewhere the general path serves every call.
+#[cfg(not(target_arch = "x86_64"))]
+pub fn available(_d: usize) -> bool {
+    false
+}
+
+/// Elsewhere there is no bf16 path.
+#[cfg(not(target_arch = "x86_64"))]
+pub fn bf16_available() -> bool {
+    false
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+use std::arch::x86_64::*;
+use std::sync::Mutex;
+
+use rayon::prelude::*;
+
+use crate::attention::record;
+use crate::error::Result;
+use crate::kernels::{internal, Matrix, SharedMut, View};
+
+/// Query rows per strip: the unit of the score buffer (`STRIP × N` floats).
+const STRIP: usize = 16;
+/// Query rows per task of the shared cross attention (fixed, for reproducible sums).
+const CROSS_ROWS: usize = 256;
+/// Start of a running column maximum: finite, so that `exp2(start − max)` is 0, not NaN.
+const NEG: f32 = -1e30;
+
+/// Whether the fused kernels serve head width `d` here (AVX-512F at run time).
+pub fn available(d: usize) -> bool {
+    matches!(d, 16 | 32 | 64) && crate::kernels::simd_level() >= 4
+}
+
+/// Whether this CPU runs the bf16 kernels (AVX-512 BF16 at run time).
+pub fn bf16_available() -> bool {
+    crate::kernels::simd_level() >= 4 && std::is_x86_feature_detected!("avx512bf16") && std::is_x86_feature_detected!("avx512bw")
+}
+
+// ---- packing ------------------------------------------------------------------------
+
+/// The operands of one attention call, packed per head.
+struct Packed {
+    heads: usize,
+    d: usize,
+    /// Query rows and key columns, and both padded (rows to `STRIP`, columns to 32).
+    m: usize,
+    n: usize,
+    mp: usize,
+    np: usize,
+    /// `[H][mp][d]` queries × `log2(e)/√d` (fp32), or as bf16 pairs when `bf16`.
+    q: Vec<f32>,
+    /// `[H][np/16][d][16]` keys transposed in 16-column panels; bf16: `[H][np/16][d/2][16][2]`.
+    k: Vec<f32>,
+    q16: Vec<u16>,
+    k16: Vec<u16>,
+}
+
+fn bf16_bits(x: f32) -> u16 {
+    // Round to nearest even, as `vcvtne2ps2bf16` does (inputs are finite here).
+    let b = x.to_bits();
+    ((b + 0x7FFF + ((b >> 16) & 1)) >> 16) as u16
+}
+
+fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
+    let (m, n, c) = (q.rows, k.rows, q.cols);
+    let d = c / heads;
+    let (mp, np) = (m.div_ceil(STRIP) * STRIP, n.div_ceil(32) * 32);
+    let factor = std::f32::consts::LOG2_E / (d as f32).sqrt();
+    let mut p = Packed { heads, d, m, n, mp, np, q: Vec::new(), k: Vec::new(), q16: Vec::new(), k16: Vec::new() };
+    if bf16 {
+        p.q16 = vec![0; heads * mp * d];
+        p.k16 = vec![0; heads * np * d];
+    } else {
+        p.q = vec![0.0; heads * mp * d];
+        p.k = vec![0.0; heads * np * d];
+    }
+    for h in 0..heads {
+        for i in 0..m {
+            let src = &q.row(i)[h * d..(h + 1) * d];
+            let o = (h * mp + i) * d;
+            if bf16 {
+                for (t, &v) in src.iter().enumerate() {
+                    p.q16[o + t] = bf16_bits(v * factor);
+                }
+            } else {
+                for (t, &v) in src.iter().enumerate() {
+                    p.q[o + t] = v * factor;
+                }
+            }
+        }
+        for j in 0..n {
+            let src = &k.row(j)[h * d..(h + 1) * d];
+            let (panel, lane) = (j / 16, j % 16);
+            let base = (h * np / 16 + panel) * d * 16;
+            for (t, &v) in src.iter().enumerate() {
+                if bf16 {
+                    p.k16[base + (t / 2) * 32 + lane * 2 + t % 2] = bf16_bits(v);
+                } else {
+                    p.k[base + t * 16 + lane] = v;
+                }
+            }
+        }
+    }
+    p
+}
+
+/// Values of one head as bf16, `[ceil(rows/2)][d][2]` (pairs of rows interleaved), or an
+/// empty vector for fp32 (which reads the strided values in place).
+fn pack_values_bf16(v: View, heads: usize) -> Vec<u16> {
+    let (n, c) = (v.rows, v.cols);
+    let d = c / heads;
+    let half = n.div_ceil(2);
+    let mut out = vec![0u16; heads * half * d * 2];
+    for h in 0..heads {
+        for j in 0..n {
+            let src = &v.row(j)[h * d..(h + 1) * d];
+            let base = (h * half + j / 2) * d * 2;
+            for (t, &x) in src.iter().enumerate() {
+                out[base + t * 2 + j % 2] = bf16_bits(x);
+            }
+        }
+    }
+    out
+}
+
+// ---- vector helpers -----------------------------------------------------------------
+
+/// `2^x` to 2.4e-7 relative error (degree-5 minimax on [−½, ½] and `vscalefps`);
+/// 0 below −150, NaN stays NaN.
+#[inline(always)]
+unsafe fn exp2v(x: __m512) -> __m512 {
+    // max(−160, x) returns x itself when x is NaN (second operand).
+    let x = _mm512_max_ps(_mm512_set1_ps(-160.0), x);
+    let n = _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(x);
+    let f = _mm512_sub_ps(x, n);
+    let mut p = _mm512_set1_ps(0.001_327_647_1);
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(0.009_675_541));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(0.055_507_13));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(0.240_221_2));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(0.693_146_94));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(1.000_000_1));
+    _mm512_scalef_ps(p, n)
+}
+
+/// Lanes `j0..j0+16` that lie below `n`.
+#[inline(always)]
+fn lane_mask(n: usize, j0: usize) -> __mmask16 {
+    if n >= j0 + 16 {
+        0xFFFF
+    } else if n <= j0 {
+        0
+    } else {
+        ((1u32 << (n - j0)) - 1) as __mmask16
+    }
+}
+
+// ---- micro-kernels ------------------------------------------------------------------
+
+/// Scores of a strip: `s[r][j] = Σ_t q[r][t]·kᵀ[t][j]` for 16 rows and all `np` columns
+/// (columns ≥ `n` set to −∞). fp32 operands.
+#[inline(always)]
+unsafe fn scores_f32<const D: usize>(q: *const f32, kp: *const f32, n: usize, np: usize, s: *mut f32) {
+    let neg = _mm512_set1_ps(f32::NEG_INFINITY);
+    for rt in (0..STRIP).step_by(8) {
+        for p in (0..np / 16).step_by(2) {
+            let mut acc = [[_mm512_setzero_ps(); 2]; 8];
+            let (b0p, b1p) = (kp.add(p * D * 16), kp.add((p + 1) * D * 16));
+            for t in 0..D {
+                let b0 = _mm512_loadu_ps(b0p.add(t * 16));
+                let b1 = _mm512_loadu_ps(b1p.add(t * 16));
+                for (r, a) in acc.iter_mut().enumerate() {
+                    let x = _mm512_set1_ps(*q.add((rt + r) * D + t));
+                    a[0] = _mm512_fmadd_ps(x, b0, a[0]);
+                    a[1] = _mm512_fmadd_ps(x, b1, a[1]);
+                }
+            }
+            store_tile(&acc, s.add(rt * np + p * 16), np, lane_mask(n, p * 16), lane_mask(n, p * 16 + 16), neg);
+        }
+    }
+}
+
+/// The same scores from bf16 pairs (`vdpbf16ps`, fp32 accumulation).
+#[inline(always)]
+unsafe fn scores_bf16<const D: usize>(q: *const u16, kp: *const u16, n: usize, np: usize, s: *mut f32) {
+    let neg = _mm512_set1_ps(f32::NEG_INFINITY);
+    for rt in (0..STRIP).step_by(8) {
+        for p in (0..np / 16).step_by(2) {
+            let mut acc = [[_mm512_setzero_ps(); 2]; 8];
+            let (b0p, b1p) = (kp.add(p * D * 16), kp.add((p + 1) * D * 16));
+            for t2 in 0..D / 2 {
+                let b0: __m512bh = std::mem::transmute(_mm512_loadu_si512(b0p.add(t2 * 32) as *const _));
+                let b1: __m512bh = std::mem::transmute(_mm512_loadu_si512(b1p.add(t2 * 32) as *const _));
+                for (r, a) in acc.iter_mut().enumerate() {
+                    let pair = (q.add((rt + r) * D + 2 * t2) as *const i32).read_unaligned();
+                    let x: __m512bh = std::mem::transmute(_mm512_set1_epi32(pair));
+                    a[0] = _mm512_dpbf16_ps(a[0], x, b0);
+                    a[1] = _mm512_dpbf16_ps(a[1], x, b1);
+                }
+            }
+            store_tile(&acc, s.add(rt * np + p * 16), np, lane_mask(n, p * 16), lane_mask(n, p * 16 + 16), neg);
+        }
+    }
+}
+
+#[inline(always)]
+unsafe fn store_tile(acc: &[[__m512; 2]; 8], s: *mut f32, np: usize, m0: __mmask16, m1: __mmask16, neg: __m512) {
+    for (r, a) in acc.iter().enumerate() {
+        _mm512_storeu_ps(s.add(r * np), _mm512_mask_blend_ps(m0, neg, a[0]));
+        _mm512_storeu_ps(s.add(r * np + 16), _mm512_mask_blend_ps(m1, neg, a[1]));
+    }
+}
+
+/// Row `s[..np]` ← `2^(s − max)` in place; returns the sum. With `p16`, also writes the
+/// values as bf16 there.
+#[inline(always)]
+unsafe fn exp_row(s: *mut f32, np: usize, p16: Option<*mut u16>) -> f32 {
+    let mut mx = _mm512_set1_ps(f32::NEG_INFINITY);
+    for c in (0..np).step_by(16) {
+        mx = _mm512_max_ps(mx, _mm512_loadu_ps(s.add(c)));
+    }
+    let m = _mm512_set1_ps(_mm512_reduce_max_ps(mx));
+    let mut sum = _mm512_setzero_ps();
+    for c in (0..np).step_by(32) {
+        let e0 = exp2v(_mm512_sub_ps(_mm512_loadu_ps(s.add(c)), m));
+        let e1 = exp2v(_mm512_sub_ps(_mm512_loadu_ps(s.add(c + 16)), m));
+        sum = _mm512_add_ps(sum, _mm512_add_ps(e0, e1));
+        match p16 {
+            Some(p) => _mm512_storeu_si512(p.add(c) as *mut _, std::mem::transmute::<__m512bh, __m512i>(_mm512_cvtne2ps_pbh(e1, e0))),
+            None => {
+                _mm512_storeu_ps(s.add(c), e0);
+                _mm512_storeu_ps(s.add(c + 16), e1);
+            }
+        }
+    }
+    _mm512_reduce_add_ps(sum)
+}
+
+/// `out[r][..D] = inv[r] · Σ_j p[r][j]·v[j][..D]` for 16 rows (fp32; `v` strided).
+#[inline(always)]
+unsafe fn values_f32<const D: usize>(p: *const f32, np: usize, n: usize, v: *const f32, v_stride: usize, out: &mut [[f32; 64]; STRIP]) {
+    const { assert!(D.is_multiple_of(16) && D <= 64) };
+    let dv = D / 16;
+    // Tiles of R rows × D columns with R·dv = 16 accumulators.
+    let rows = 16 / dv;
+    for r0 in (0..STRIP).step_by(rows) {
+        let mut acc = [_mm512_setzero_ps(); 16];
+        for j in 0..n {
+            let vp = v.add(j * v_stride);
+            let mut vr = [_mm512_setzero_ps(); 4];
+            for (c, x) in vr.iter_mut().enumerate().take(dv) {
+                *x = _mm512_loadu_ps(vp.add(c * 16));
+            }
+            for r in 0..rows {
+                let a = _mm512_set1_ps(*p.add((r0 + r) * np + j));
+                for c in 0..dv {
+                    acc[r * dv + c] = _mm512_fmadd_ps(a, vr[c], acc[r * dv + c]);
+                }
+            }
+        }
+        for r in 0..rows {
+            for c in 0..dv {
+                _mm512_storeu_ps(out[r0 + r].as_mut_ptr().add(c * 16), acc[r * dv + c]);
+            }
+        }
+    }
+}
+
+/// The same from bf16 probabilities `p16` (`[16][np]`) and values packed by
+/// [`pack_values_bf16`] (pairs of rows; `n` rounded up to even, padding is zero).
+#[inline(always)]
+unsafe fn values_bf16<const D: usize>(p16: *const u16, np: usize, n: usize, v16: *const u16, out: &mut [[f32; 64]; STRIP]) {
+    let dv = D / 16;
+    let rows = 16 / dv;
+    for r0 in (0..STRIP).step_by(rows) {
+        let mut acc = [_mm512_setzero_ps(); 16];
+        for j2 in 0..n.div_ceil(2) {
+            let vp = v16.add(j2 * D * 2);
+            let mut vr: [__m512bh; 4] = [std::mem::transmute::<__m512i, __m512bh>(_mm512_setzero_si512()); 4];
+            for (c, x) in vr.iter_mut().enumerate().take(dv) {
+                *x = std::mem::transmute::<__m512i, __m512bh>(_mm512_loadu_si512(vp.add(c * 32) as *const _));
+            }
+            for r in 0..rows {
+                let pair = (p16.add((r0 + r) * np + 2 * j2) as *const i32).read_unaligned();
+                let a: __m512bh = std::mem::transmute(_mm512_set1_epi32(pair));
+                for c in 0..dv {
+                    acc[r * dv + c] = _mm512_dpbf16_ps(acc[r * dv + c], a, vr[c]);
+                }
+            }
+        }
+        for r in 0..rows {
+            for c in 0..dv {
+                _mm512_storeu_ps(out[r0 + r].as_mut_ptr().add(c * 16), acc[r * dv + c]);
+            }
+        }
+    }
+}
+
+// ---- self attention -----------------------------------------------------------------
+
+/// `softmax(q·kᵀ/√d)·v` for every head, with optional column sums of the probabilities
+/// (`Σ_h Σ_i A[h,i,j]`), as [`crate::attention::attention`]. Caller checks [`available`]
+/// (and [`bf16_available`] for `bf16`).
+pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool, bf16: bool) -> Result<(Matrix, Option<Vec<f32>>)> {
+    let (m, n, c) = (q.rows, k.rows, q.cols);
+    if k.cols != c || v.cols != c || v.rows != n || heads == 0 || c % heads != 0 || !available(c / heads) {
+        return Err(internal(format!("fused attention q {m}×{c}, k {}×{}, v {}×{}, {heads} heads", k.rows, k.cols, v.rows, v.cols)));
+    }
+    let mut out = Matrix::zeros(m, c);
+    if m == 0 || n == 0 {
+        return Ok((out, col_sums.then(|| vec![0.0; n])));
+    }
+    let pk = pack(q, k, heads, bf16);
+    let v16 = if bf16 { pack_values_bf16(v, heads) } else { Vec::new() };
+    let d = pk.d;
+    let strips = pk.mp / STRIP;
+    let dst = SharedMut(out.data.as_mut_ptr());
+    let err = Mutex::new(None);
+    let per_task: Vec<Vec<f32>> = (0..heads * strips)
+        .into_par_iter()
+        .map_init(
+            || (vec![0.0f32; STRIP * pk.np], vec![0u16; if bf16 { STRIP * pk.np } else { 0 }]),
+            |(s, p16), t| {
+                let (h, st) = (t % heads, t / heads);
+                let mut cs = if col_sums { vec![0.0f32; n] } else { Vec::new() };
+                // SAFETY: AVX-512 (and BF16 for `bf16`) was checked by the caller; task
+                // (h, st) alone writes rows st·16.. of columns h·d..(h+1)·d of `out`.
+                let job = SelfJob { pk: &pk, v, v16: &v16, h, st, dst };
+                let r = unsafe {
+                    match (d, bf16) {
+                        (16, false) => self_strip_f32::<16>(&job, s, &mut cs),
+                        (32, false) => self_strip_f32::<32>(&job, s, &mut cs),
+                        (_, false) => self_strip_f32::<64>(&job, s, &mut cs),
+                        (16, true) => self_strip_bf16::<16>(&job, s, p16, &mut cs),
+                        (32, true) => self_strip_bf16::<32>(&job, s, p16, &mut cs),
+                        (_, true) => self_strip_bf16::<64>(&job, s, p16, &mut cs),
+                    }
+                };
+                record(&err, r);
+                cs
+            },
+        )
+        .collect();
+    if let Ok(Some(e)) = err.into_inner() {
+        return Err(e);
+    }
+    let sums = col_sums.then(|| {
+        let mut sums = vec![0.0f32; n];
+        for cs in &per_task {
+            for (a, p) in sums.iter_mut().zip(cs) {
+                *a += p;
+            }
+        }
+        sums
+    });
+    Ok((out, sums))
+}
+
+/// One strip of self attention: rows `st·16..` of head `h`.
+struct SelfJob<'a> {
+    pk: &'a Packed,
+    v: View<'a>,
+    v16: &'a [u16],
+    h: usize,
+    st: usize,
+    dst: SharedMut,
+}
+
+#[target_feature(enable = "avx512f")]
+unsafe fn self_strip_f32<const D: usize>(job: &SelfJob, s: &mut [f32], cs: &mut [f32]) -> Result<()> {
+    self_strip::<D, false>(job, s, &mut [], cs)
+}
+
+#[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+unsafe fn self_strip_bf16<const D: usize>(job: &SelfJob, s: &mut [f32], p16: &mut [u16], cs: &mut [f32]) -> Result<()> {
+    self_strip::<D, true>(job, s, p16, cs)
+}
+
+#[inline(always)]
+unsafe fn self_strip<const D: usize, const BF: bool>(job: &SelfJob, s: &mut [f32], p16: &mut [u16], cs: &mut [f32]) -> Result<()> {
+    let SelfJob { pk, v, v16, h, st, dst } = *job;
+    let bf16 = BF;
+    let (n, np, c) = (pk.n, pk.np, pk.heads * D);
+    let r0 = st * STRIP;
+    let rows = STRIP.min(pk.m - r0);
+    if bf16 {
+        scores_bf16::<D>(pk.q16.as_ptr().add((h * pk.mp + r0) * D), pk.k16.as_ptr().add(h * np * D), n, np, s.as_mut_ptr());
+    } else {
+        scores_f32::<D>(pk.q.as_ptr().add((h * pk.mp + r0) * D), pk.k.as_ptr().add(h * np * D), n, np, s.as_mut_ptr());
+    }
+    let mut inv = [0.0f32; STRIP];
+    for (r, iv) in inv.iter_mut().enumerate() {
+        let p = bf16.then(|| p16.as_mut_ptr().add(r * np));
+        *iv = 1.0 / exp_row(s.as_mut_ptr().add(r * np), np, p);
+    }
+    let mut out = [[0.0f32; 64]; STRIP];
+    if bf16 {
+        values_bf16::<D>(p16.as_ptr(), np, n, v16.as_ptr().add(h * n.div_ceil(2) * D * 2), &mut out);
+    } else if v.data.len() >= (n - 1) * v.stride + c {
+        values_f32::<D>(s.as_ptr(), np, n, v.data.as_ptr().add(h * D), v.stride, &mut out);
+    } else {
+        return Err(internal(format!("fused attention values {}×{} (stride {})", v.rows, v.cols, v.stride)));
+    }
+    for (r, o) in out.iter().enumerate().take(rows) {
+        let row = dst.at((r0 + r) * c + h * D);
+        for (t, x) in o[..D].iter().enumerate() {
+            *row.add(t) = x * inv[r];
+        }
+    }
+    if !cs.is_empty() {
+        // Probabilities of the valid rows, summed per column (fp32 values even for bf16).
+        for (r, iv) in inv.iter().enumerate().take(rows) {
+            let srow = &s[r * np..r * np + n];
+            for (a, e) in cs.iter_mut().zip(srow) {
+                *a += e * iv;
+            }
+        }
+    }
+    Ok(())
+}
+
+// ---- shared cross attention ---------------------------------------------------------
+
+/// Column-direction state of one task: running maxima, sums and `Σ_i e_ij·vx_i`.
+struct ColumnState {
+    max: Vec<f32>,
+    sum: Vec<f32>,
+    acc: Vec<f32>,
+}
+
+/// Cross attention with attention-weight sharing, as
+/// [`crate::attention::cross_attention_shared`]: `(softmax_rows(S)·vy, softmax_rows(Sᵀ)·vx)`
+/// with `S = qx·kyᵀ/√d` per head.
+pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usize, bf16: bool) -> Result<(Matrix, Matrix)> {
+    let (m, n, c) = (qx.rows, ky.rows, qx.cols);
+    if ky.cols != c || vx.cols != c || vy.cols != c || vx.rows != m || vy.rows != n || heads == 0 || c % heads != 0 || !available(c / heads) {
+        return Err(internal(format!("fused cross attention qx {m}×{c}, ky {n}×{}, {heads} heads", ky.cols)));
+    }
+    let (mut out_x, mut out_y) = (Matrix::zeros(m, c), Matrix::zeros(n, c));
+    if m == 0 || n == 0 {
+        return Ok((out_x, out_y));
+    }
+    let pk = pack(qx, ky, heads, bf16);
+    let vy16 = if bf16 { pack_values_bf16(vy, heads) } else { Vec::new() };
+    let d = pk.d;
+    let chunks = m.div_ceil(CROSS_ROWS);
+    let dx = SharedMut(out_x.data.as_mut_ptr());
+    let err = Mutex::new(None);
+    let states: Vec<Option<ColumnState>> = (0..heads * chunks)
+        .into_par_iter()
+        .map(|t| {
+            let (h, ch) = (t % heads, t / heads);
+            // SAFETY: AVX-512 (and BF16 for `bf16`) was checked by the caller; task (h, ch)
+            // alone writes rows ch·CROSS_ROWS.. of columns h·d..(h+1)·d of `out_x`.
+            let job = CrossJob { pk: &pk, vx, vy, vy16: &vy16, h, ch, dx };
+            let r = unsafe {
+                match (d, bf16) {
+                    (16, false) => cross_chunk_f32::<16>(&job),
+                    (32, false) => cross_chunk_f32::<32>(&job),
+                    (_, false) => cross_chunk_f32::<64>(&job),
+                    (16, true) => cross_chunk_bf16::<16>(&job),
+                    (32, true) => cross_chunk_bf16::<32>(&job),
+                    (_, true) => cross_chunk_bf16::<64>(&job),
+                }
+            };
+            match r {
+                Ok(s) => Some(s),
+                Err(e) => {
+                    record(&err, Err(e));
+                    None
+                }
+            }
+        })
+        .collect();
+    if let Ok(Some(e)) = err.into_inner() {
+        return Err(e);
+    }
+    // Merge the chunks of each head in order: rescale each to the overall column maximum.
+    for h in 0..heads {
+        let parts: Vec<&ColumnState> = (0..chunks).filter_map(|ch| states[ch * heads + h].as_ref()).collect();
+        for j in 0..n {
+            let mx = parts.iter().fold(NEG, |a, s| a.max(s.max[j]));
+            let mut sum = 0.0f32;
+            let mut acc = [0.0f32; 64];
+            for s in &parts {
+                let f = (std::f32::consts::LN_2 * (s.max[j] - mx)).exp();
+                sum += s.sum[j] * f;
+                for (a, x) in acc[..d].iter_mut().zip(&s.acc[j * d..(j + 1) * d]) {
+                    *a += x * f;
+                }
+            }
+            let row = &mut out_y.data[j * c + h * d..j * c + (h + 1) * d];
+            for (o, a) in row.iter_mut().zip(&acc[..d]) {
+                *o = a / sum;
+            }
+        }
+    }
+    Ok((out_x, out_y))
+}
+
+/// One task of the shared cross attention: rows `ch·CROSS_ROWS..` of head `h`.
+struct CrossJob<'a> {
+    pk: &'a Packed,
+    vx: View<'a>,
+    vy: View<'a>,
+    vy16: &'a [u16],
+    h: usize,
+    ch: usize,
+    dx: SharedMut,
+}
+
+#[target_feature(enable = "avx512f")]
+unsafe fn cross_chunk_f32<const D: usize>(job: &CrossJob) -> Result<ColumnState> {
+    cross_chunk::<D, false>(job)
+}
+
+#[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+unsafe fn cross_chunk_bf16<const D: usize>(job: &CrossJob) -> Result<ColumnState> {
+    cross_chunk::<D, true>(job)
+}
+
+#[inline(always)]
+unsafe fn cross_chunk<const D: usize, const BF: bool>(job: &CrossJob) -> Result<ColumnState> {
+    let CrossJob { pk, vx, vy, vy16, h, ch, dx } = *job;
+    let bf16 = BF;
+    let (n, np, c) = (pk.n, pk.np, pk.heads * D);
+    if vy.data.len() < (n - 1) * vy.stride + c || vx.data.len() < (pk.m - 1) * vx.stride + c {
+        return Err(internal("fused cross attention values".into()));
+    }
+    let mut st = ColumnState { max: vec![NEG; np], sum: vec![0.0; np], acc: vec![0.0; np * D] };
+    let mut s = vec![0.0f32; STRIP * np];
+    let mut p16 = vec![0u16; if bf16 { STRIP * np } else { 0 }];
+    let mut factor = vec![0.0f32; np];
+    let first = ch * CROSS_ROWS;
+    let last = (first + CROSS_ROWS).min(pk.m);
+    for r0 in (first..last).step_by(STRIP) {
+        let rows = STRIP.min(last - r0);
+        if bf16 {
+            scores_bf16::<D>(pk.q16.as_ptr().add((h * pk.mp + r0) * D), pk.k16.as_ptr().add(h * np * D), n, np, s.as_mut_ptr());
+        } else {
+            scores_f32::<D>(pk.q.as_ptr().add((h * pk.mp + r0) * D), pk.k.as_ptr().add(h * np * D), n, np, s.as_mut_ptr());
+        }
+        // Columns: new running maxima over the valid rows; rescale what grew.
+        let sp = s.as_ptr();
+        let mut grew = false;
+        for j in (0..np).step_by(16) {
+            let mut bm = _mm512_loadu_ps(st.max.as_ptr().add(j));
+            let old = bm;
+            for r in 0..rows {
+                bm = _mm512_max_ps(bm, _mm512_loadu_ps(sp.add(r * np + j)));
+            }
+            let f = exp2v(_mm512_sub_ps(old, bm));
+            _mm512_storeu_ps(st.max.as_mut_ptr().add(j), bm);
+            _mm512_storeu_ps(factor.as_mut_ptr().add(j), f);
+            _mm512_storeu_ps(st.sum.as_mut_ptr().add(j), _mm512_mul_ps(f, _mm512_loadu_ps(st.sum.as_ptr().add(j))));
+            grew |= _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(f, _mm512_set1_ps(1.0)) != 0;
+        }
+        if grew && r0 > first {
+            for (j, &f) in factor.iter().enumerate() {
+                if f != 1.0 {
+                    for a in &mut st.acc[j * D..(j + 1) * D] {
+                        *a *= f;
+                    }
+                }
+            }
+        }
+        column_values::<D>(sp, np, rows, &mut st, vx.data.as_ptr().add(r0 * vx.stride + h * D), vx.stride);
+        // Rows: softmax over the keys, values of image 1.
+        let mut inv = [0.0f32; STRIP];
+        for (r, iv) in inv.iter_mut().enumerate() {
+            let p = bf16.then(|| p16.as_mut_ptr().add(r * np));
+            *iv = 1.0 / exp_row(s.as_mut_ptr().add(r * np), np, p);
+        }
+        let mut out = [[0.0f32; 64]; STRIP];
+        if bf16 {
+            values_bf16::<D>(p16.as_ptr(), np, n, vy16.as_ptr().add(h * n.div_ceil(2) * D * 2), &mut out);
+        } else {
+            values_f32::<D>(s.as_ptr(), np, n, vy.data.as_ptr().add(h * D), vy.stride, &mut out);
+        }
+        for (r, o) in out.iter().enumerate().take(rows) {
+            let row = dx.at((r0 + r) * c + h * D);
+            for (t, x) in o[..D].iter().enumerate() {
+                *row.add(t) = x * inv[r];
+            }
+        }
+    }
+    st.max.truncate(n);
+    st.sum.truncate(n);
+    st.acc.truncate(n * D);
+    Ok(st)
+}
+
+/// Column direction of one strip: `e_rj = 2^(s_rj − max_j)`, `sum_j += Σ_r e_rj` and
+/// `acc_j += Σ_r e_rj·vx_r` (fp32: these sums are few per column and stay exact enough).
+#[inline(always)]
+unsafe fn column_values<const D: usize>(s: *const f32, np: usize, rows: usize, st: &mut ColumnState, vx: *const f32, vx_stride: usize) {
+    let dv = D / 16;
+    let cols = 16 / dv; // columns per register tile: cols·dv = 16 accumulators
+    let mut e = [[0.0f32; 16]; STRIP];
+    for j0 in (0..np).step_by(16) {
+        let mx = _mm512_loadu_ps(st.max.as_ptr().add(j0));
+        let mut sum = _mm512_loadu_ps(st.sum.as_ptr().add(j0));
+        for (r, er) in e.iter_mut().enumerate().take(rows) {
+            let x = exp2v(_mm512_sub_ps(_mm512_loadu_ps(s.add(r * np + j0)), mx));
+            sum = _mm512_add_ps(sum, x);
+            _mm512_storeu_ps(er.as_mut_ptr(), x);
+        }
+        _mm512_storeu_ps(st.sum.as_mut_ptr().add(j0), sum);
+        for jt in (0..16).step_by(cols) {
+            let mut acc = [_mm512_setzero_ps(); 16];
+            for (r, er) in e.iter().enumerate().take(rows) {
+                let vp = vx.add(r * vx_stride);
+                let mut vr = [_mm512_setzero_ps(); 4];
+                for (cc, x) in vr.iter_mut().enumerate().take(dv) {
+                    *x = _mm512_loadu_ps(vp.add(cc * 16));
+                }
+                for jj in 0..cols {
+                    let a = _mm512_set1_ps(er[jt + jj]);
+                    for cc in 0..dv {
+                        acc[jj * dv + cc] = _mm512_fmadd_ps(a, vr[cc], acc[jj * dv + cc]);
+                    }
+                }
+            }
+            for jj in 0..cols {
+                let ap = st.acc.as_mut_ptr().add((j0 + jt + jj) * D);
+                for cc in 0..dv {
+                    _mm512_storeu_ps(ap.add(cc * 16), _mm512_add_ps(_mm512_loadu_ps(ap.add(cc * 16)), acc[jj * dv + cc]));
+                }
+            }
+        }
+    }
+}
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod tests {
+    use crate::attention::{attention, cross_attention_shared};
+    use crate::kernels::{Ctx, Matrix, Precision};
+
+    fn random(rows: usize, cols: usize, seed: u64, amp: f32) -> Matrix {
+        let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        let data = (0..rows * cols)
+            .map(|_| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                ((s >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 2.0 * amp
+            })
+            .collect();
+        Matrix { rows, cols, data }
+    }
+
+    fn max_diff(a: &[f32], b: &[f32]) -> f32 {
+        assert_eq!(a.len(), b.len());
+        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    }
+
+    fn general() -> Ctx {
+        let mut ctx = Ctx::default();
+        ctx.fused = false;
+        ctx
+    }
+
+    /// The fused kernels against the general path: odd sizes (padding of rows and
+    /// columns), every head width, more rows than one cross-attention task, large scores.
+    #[test]
+    fn fused_matches_the_general_path() {
+        if !super::available(16) {
+            eprintln!("skipped: no AVX-512 here");
+            return;
+        }
+        for &(m, n, c, heads, amp) in &[(77, 53, 64, 4, 1.0), (600, 301, 64, 2, 2.0), (33, 517, 128, 2, 1.5), (5, 1, 32, 2, 1.0), (300, 300, 64, 1, 3.0)] {
+            let (q, k, v) = (random(m, c, 1, amp), random(n, c, 2, amp), random(n, c, 3, 1.0));
+            let (vx, ky) = (random(m, c, 4, 1.0), random(n, c, 5, amp));
+            let (want, want_cs) = attention(&general(), q.view(), k.view(), v.view(), heads, true).expect("general");
+            let (got, got_cs) = attention(&Ctx::default(), q.view(), k.view(), v.view(), heads, true).expect("fused");
+            let (want_cs, got_cs) = (want_cs.expect("sums"), got_cs.expect("sums"));
+            assert!(max_diff(&want.data, &got.data) < 2e-6, "self {m}×{n} c{c} h{heads}: {}", max_diff(&want.data, &got.data));
+            assert!(max_diff(&want_cs, &got_cs) < 1e-5 * m as f32, "col sums: {}", max_diff(&want_cs, &got_cs));
+            let (wx, wy) = cross_attention_shared(&general(), q.view(), ky.view(), vx.view(), v.view(), heads).expect("general");
+            let (gx, gy) = cross_attention_shared(&Ctx::default(), q.view(), ky.view(), vx.view(), v.view(), heads).expect("fused");
+            assert!(max_diff(&wx.data, &gx.data) < 2e-6, "cross x {m}×{n}: {}", max_diff(&wx.data, &gx.data));
+            assert!(max_diff(&wy.data, &gy.data) < 2e-6, "cross y {m}×{n}: {}", max_diff(&wy.data, &gy.data));
+            if super::bf16_available() {
+                let bf = Ctx::with_precision(Precision::Bf16);
+                let (b, _) = attention(&bf, q.view(), k.view(), v.view(), heads, false).expect("bf16");
+                let (bx, by) = cross_attention_shared(&bf, q.view(), ky.view(), vx.view(), v.view(), heads).expect("bf16");
+                // bf16 operands: 8 significant bits, errors of a few 1e-3 on values of size ~1.
+                for (name, w, g) in [("self", &want, &b), ("cross x", &wx, &bx), ("cross y", &wy, &by)] {
+                    let e = max_diff(&w.data, &g.data);
+                    assert!(e < 0.005 * amp, "bf16 {name} {m}×{n}: {e}");
+                }
+            }
+        }
+    }
+
+    /// Results do not depend on the thread count.
+    #[test]
+    fn fused_is_reproducible_across_thread_counts() {
+        if !super::available(32) {
+            eprintln!("skipped: no AVX-512 here");
+            return;
+        }
+        let (q, k, v) = (random(700, 64, 7, 2.0), random(650, 64, 8, 2.0), random(650, 64, 9, 1.0));
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+            pool.install(|| {
+                let (a, s) = attention(&Ctx::default(), q.view(), k.view(), v.view(), 2, true).expect("self");
+                let (x, y) = cross_attention_shared(&Ctx::default(), q.view(), k.view(), q.view(), v.view(), 2).expect("cross");
+                (a.data, s, x.data, y.data)
+            })
+        };
+        assert!(run(1) == run(3));
+    }
+}
