@@ -93,15 +93,16 @@ fn shipped(c: &mut Criterion) {
             }
         }
     }
-    // One C = 64 parallel layer at 2048 keypoints: fused kernels (fp32, bf16) and the general path.
+    // One parallel layer at 2048 keypoints (C = 64 with head widths 16 and 32, and the
+    // paper's C = 256 with 64): fused kernels (fp32, bf16) and the general path.
     let vb = random_var_builder(3);
-    let (x, y) = (random_matrix(2048, 64, 4), random_matrix(2048, 64, 5));
-    for heads in [4, 2] {
-        let layer = ParallelLayer::new(64, heads, ParallelSwitches::default(), vb.pp(format!("l{heads}"))).expect("layer");
+    for (c, heads) in [(64, 4), (64, 2), (256, 4)] {
+        let (x, y) = (random_matrix(2048, c, 4), random_matrix(2048, c, 5));
+        let layer = ParallelLayer::new(c, heads, ParallelSwitches::default(), vb.pp(format!("l{c}_{heads}"))).expect("layer");
         let mut general = Ctx::default();
         general.fused = false;
         for (name, ctx) in [("general", general), ("fused_fp32", Ctx::default()), ("fused_bf16", Ctx::with_precision(Precision::Bf16))] {
-            g.bench_function(format!("layer_c64_h{heads}/{name}"), |b| b.iter(|| layer.forward(&ctx, &x, &y, false).expect("runs")));
+            g.bench_function(format!("layer_c{c}_h{heads}/{name}"), |b| b.iter(|| layer.forward(&ctx, &x, &y, false).expect("runs")));
         }
     }
     g.finish();

@@ -68,6 +68,9 @@ struct Packed {
     n: usize,
     mp: usize,
     np: usize,
+    /// Row stride of the score strips: `np` plus a cache line, so that the 16 rows do not
+    /// all fall into the same L1 sets (a power-of-two stride thrashes them).
+    ld: usize,
     /// `[H][mp][d]` queries × `log2(e)/√d` (fp32), or as bf16 pairs when `bf16`.
     q: Vec<f32>,
     /// `[H][np/16][d][16]` keys transposed in 16-column panels; bf16: `[H][np/16][d/2][16][2]`.
@@ -87,7 +90,7 @@ fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
     let d = c / heads;
     let (mp, np) = (m.div_ceil(STRIP) * STRIP, n.div_ceil(32) * 32);
     let factor = std::f32::consts::LOG2_E / (d as f32).sqrt();
-    let mut p = Packed { heads, d, m, n, mp, np, q: Vec::new(), k: Vec::new(), q16: Vec::new(), k16: Vec::new() };
+    let mut p = Packed { heads, d, m, n, mp, np, ld: np + 16, q: Vec::new(), k: Vec::new(), q16: Vec::new(), k16: Vec::new() };
     if bf16 {
         p.q16 = vec![0; heads * mp * d];
         p.k16 = vec![0; heads * np * d];
@@ -180,7 +183,7 @@ fn lane_mask(n: usize, j0: usize) -> __mmask16 {
 /// Scores of a strip: `s[r][j] = Σ_t q[r][t]·kᵀ[t][j]` for 16 rows and all `np` columns
 /// (columns ≥ `n` set to −∞). fp32 operands.
 #[inline(always)]
-unsafe fn scores_f32<const D: usize>(q: *const f32, kp: *const f32, n: usize, np: usize, s: *mut f32) {
+unsafe fn scores_f32<const D: usize>(q: *const f32, kp: *const f32, n: usize, np: usize, s: *mut f32, ld: usize) {
     let neg = _mm512_set1_ps(f32::NEG_INFINITY);
     for rt in (0..STRIP).step_by(8) {
         for p in (0..np / 16).step_by(2) {
@@ -195,14 +198,14 @@ unsafe fn scores_f32<const D: usize>(q: *const f32, kp: *const f32, n: usize, np
                     a[1] = _mm512_fmadd_ps(x, b1, a[1]);
                 }
             }
-            store_tile(&acc, s.add(rt * np + p * 16), np, lane_mask(n, p * 16), lane_mask(n, p * 16 + 16), neg);
+            store_tile(&acc, s.add(rt * ld + p * 16), ld, lane_mask(n, p * 16), lane_mask(n, p * 16 + 16), neg);
         }
     }
 }
 
 /// The same scores from bf16 pairs (`vdpbf16ps`, fp32 accumulation).
 #[inline(always)]
-unsafe fn scores_bf16<const D: usize>(q: *const u16, kp: *const u16, n: usize, np: usize, s: *mut f32) {
+unsafe fn scores_bf16<const D: usize>(q: *const u16, kp: *const u16, n: usize, np: usize, s: *mut f32, ld: usize) {
     let neg = _mm512_set1_ps(f32::NEG_INFINITY);
     for rt in (0..STRIP).step_by(8) {
         for p in (0..np / 16).step_by(2) {
@@ -218,16 +221,16 @@ unsafe fn scores_bf16<const D: usize>(q: *const u16, kp: *const u16, n: usize, n
                     a[1] = _mm512_dpbf16_ps(a[1], x, b1);
                 }
             }
-            store_tile(&acc, s.add(rt * np + p * 16), np, lane_mask(n, p * 16), lane_mask(n, p * 16 + 16), neg);
+            store_tile(&acc, s.add(rt * ld + p * 16), ld, lane_mask(n, p * 16), lane_mask(n, p * 16 + 16), neg);
         }
     }
 }
 
 #[inline(always)]
-unsafe fn store_tile(acc: &[[__m512; 2]; 8], s: *mut f32, np: usize, m0: __mmask16, m1: __mmask16, neg: __m512) {
+unsafe fn store_tile(acc: &[[__m512; 2]; 8], s: *mut f32, ld: usize, m0: __mmask16, m1: __mmask16, neg: __m512) {
     for (r, a) in acc.iter().enumerate() {
-        _mm512_storeu_ps(s.add(r * np), _mm512_mask_blend_ps(m0, neg, a[0]));
-        _mm512_storeu_ps(s.add(r * np + 16), _mm512_mask_blend_ps(m1, neg, a[1]));
+        _mm512_storeu_ps(s.add(r * ld), _mm512_mask_blend_ps(m0, neg, a[0]));
+        _mm512_storeu_ps(s.add(r * ld + 16), _mm512_mask_blend_ps(m1, neg, a[1]));
     }
 }
 
@@ -258,7 +261,7 @@ unsafe fn exp_row(s: *mut f32, np: usize, p16: Option<*mut u16>) -> f32 {
 
 /// `out[r][..D] = inv[r] · Σ_j p[r][j]·v[j][..D]` for 16 rows (fp32; `v` strided).
 #[inline(always)]
-unsafe fn values_f32<const D: usize>(p: *const f32, np: usize, n: usize, v: *const f32, v_stride: usize, out: &mut [[f32; 64]; STRIP]) {
+unsafe fn values_f32<const D: usize>(p: *const f32, ld: usize, n: usize, v: *const f32, v_stride: usize, out: &mut [[f32; 64]; STRIP]) {
     const { assert!(D.is_multiple_of(16) && D <= 64) };
     let dv = D / 16;
     // Tiles of R rows × D columns with R·dv = 16 accumulators.
@@ -272,7 +275,7 @@ unsafe fn values_f32<const D: usize>(p: *const f32, np: usize, n: usize, v: *con
                 *x = _mm512_loadu_ps(vp.add(c * 16));
             }
             for r in 0..rows {
-                let a = _mm512_set1_ps(*p.add((r0 + r) * np + j));
+                let a = _mm512_set1_ps(*p.add((r0 + r) * ld + j));
                 for c in 0..dv {
                     acc[r * dv + c] = _mm512_fmadd_ps(a, vr[c], acc[r * dv + c]);
                 }
@@ -289,7 +292,7 @@ unsafe fn values_f32<const D: usize>(p: *const f32, np: usize, n: usize, v: *con
 /// The same from bf16 probabilities `p16` (`[16][np]`) and values packed by
 /// [`pack_values_bf16`] (pairs of rows; `n` rounded up to even, padding is zero).
 #[inline(always)]
-unsafe fn values_bf16<const D: usize>(p16: *const u16, np: usize, n: usize, v16: *const u16, out: &mut [[f32; 64]; STRIP]) {
+unsafe fn values_bf16<const D: usize>(p16: *const u16, ld: usize, n: usize, v16: *const u16, out: &mut [[f32; 64]; STRIP]) {
     let dv = D / 16;
     let rows = 16 / dv;
     for r0 in (0..STRIP).step_by(rows) {
@@ -301,7 +304,7 @@ unsafe fn values_bf16<const D: usize>(p16: *const u16, np: usize, n: usize, v16:
                 *x = std::mem::transmute::<__m512i, __m512bh>(_mm512_loadu_si512(vp.add(c * 32) as *const _));
             }
             for r in 0..rows {
-                let pair = (p16.add((r0 + r) * np + 2 * j2) as *const i32).read_unaligned();
+                let pair = (p16.add((r0 + r) * ld + 2 * j2) as *const i32).read_unaligned();
                 let a: __m512bh = std::mem::transmute(_mm512_set1_epi32(pair));
                 for c in 0..dv {
                     acc[r * dv + c] = _mm512_dpbf16_ps(acc[r * dv + c], a, vr[c]);
@@ -339,7 +342,7 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool, bf16: 
     let per_task: Vec<Vec<f32>> = (0..heads * strips)
         .into_par_iter()
         .map_init(
-            || (vec![0.0f32; STRIP * pk.np], vec![0u16; if bf16 { STRIP * pk.np } else { 0 }]),
+            || (vec![0.0f32; STRIP * pk.ld], vec![0u16; if bf16 { STRIP * pk.ld } else { 0 }]),
             |(s, p16), t| {
                 let (h, st) = (t % heads, t / heads);
                 let mut cs = if col_sums { vec![0.0f32; n] } else { Vec::new() };
@@ -400,24 +403,24 @@ unsafe fn self_strip_bf16<const D: usize>(job: &SelfJob, s: &mut [f32], p16: &mu
 unsafe fn self_strip<const D: usize, const BF: bool>(job: &SelfJob, s: &mut [f32], p16: &mut [u16], cs: &mut [f32]) -> Result<()> {
     let SelfJob { pk, v, v16, h, st, dst } = *job;
     let bf16 = BF;
-    let (n, np, c) = (pk.n, pk.np, pk.heads * D);
+    let (n, np, ld, c) = (pk.n, pk.np, pk.ld, pk.heads * D);
     let r0 = st * STRIP;
     let rows = STRIP.min(pk.m - r0);
     if bf16 {
-        scores_bf16::<D>(pk.q16.as_ptr().add((h * pk.mp + r0) * D), pk.k16.as_ptr().add(h * np * D), n, np, s.as_mut_ptr());
+        scores_bf16::<D>(pk.q16.as_ptr().add((h * pk.mp + r0) * D), pk.k16.as_ptr().add(h * np * D), n, np, s.as_mut_ptr(), ld);
     } else {
-        scores_f32::<D>(pk.q.as_ptr().add((h * pk.mp + r0) * D), pk.k.as_ptr().add(h * np * D), n, np, s.as_mut_ptr());
+        scores_f32::<D>(pk.q.as_ptr().add((h * pk.mp + r0) * D), pk.k.as_ptr().add(h * np * D), n, np, s.as_mut_ptr(), ld);
     }
     let mut inv = [0.0f32; STRIP];
     for (r, iv) in inv.iter_mut().enumerate() {
-        let p = bf16.then(|| p16.as_mut_ptr().add(r * np));
-        *iv = 1.0 / exp_row(s.as_mut_ptr().add(r * np), np, p);
+        let p = bf16.then(|| p16.as_mut_ptr().add(r * ld));
+        *iv = 1.0 / exp_row(s.as_mut_ptr().add(r * ld), np, p);
     }
     let mut out = [[0.0f32; 64]; STRIP];
     if bf16 {
-        values_bf16::<D>(p16.as_ptr(), np, n, v16.as_ptr().add(h * n.div_ceil(2) * D * 2), &mut out);
+        values_bf16::<D>(p16.as_ptr(), ld, n, v16.as_ptr().add(h * n.div_ceil(2) * D * 2), &mut out);
     } else if v.data.len() >= (n - 1) * v.stride + c {
-        values_f32::<D>(s.as_ptr(), np, n, v.data.as_ptr().add(h * D), v.stride, &mut out);
+        values_f32::<D>(s.as_ptr(), ld, n, v.data.as_ptr().add(h * D), v.stride, &mut out);
     } else {
         return Err(internal(format!("fused attention values {}×{} (stride {})", v.rows, v.cols, v.stride)));
     }
@@ -430,7 +433,7 @@ unsafe fn self_strip<const D: usize, const BF: bool>(job: &SelfJob, s: &mut [f32
     if !cs.is_empty() {
         // Probabilities of the valid rows, summed per column (fp32 values even for bf16).
         for (r, iv) in inv.iter().enumerate().take(rows) {
-            let srow = &s[r * np..r * np + n];
+            let srow = &s[r * ld..r * ld + n];
             for (a, e) in cs.iter_mut().zip(srow) {
                 *a += e * iv;
             }
@@ -462,6 +465,7 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
     }
     let pk = pack(qx, ky, heads, bf16);
     let vy16 = if bf16 { pack_values_bf16(vy, heads) } else { Vec::new() };
+    let vx16 = if bf16 { pack_values_bf16(vx, heads) } else { Vec::new() };
     let d = pk.d;
     let chunks = m.div_ceil(CROSS_ROWS);
     let dx = SharedMut(out_x.data.as_mut_ptr());
@@ -472,7 +476,7 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
             let (h, ch) = (t % heads, t / heads);
             // SAFETY: AVX-512 (and BF16 for `bf16`) was checked by the caller; task (h, ch)
             // alone writes rows ch·CROSS_ROWS.. of columns h·d..(h+1)·d of `out_x`.
-            let job = CrossJob { pk: &pk, vx, vy, vy16: &vy16, h, ch, dx };
+            let job = CrossJob { pk: &pk, vx, vy, vx16: &vx16, vy16: &vy16, h, ch, dx };
             let r = unsafe {
                 match (d, bf16) {
                     (16, false) => cross_chunk_f32::<16>(&job),
@@ -523,6 +527,7 @@ struct CrossJob<'a> {
     pk: &'a Packed,
     vx: View<'a>,
     vy: View<'a>,
+    vx16: &'a [u16],
     vy16: &'a [u16],
     h: usize,
     ch: usize,
@@ -541,24 +546,24 @@ unsafe fn cross_chunk_bf16<const D: usize>(job: &CrossJob) -> Result<ColumnState
 
 #[inline(always)]
 unsafe fn cross_chunk<const D: usize, const BF: bool>(job: &CrossJob) -> Result<ColumnState> {
-    let CrossJob { pk, vx, vy, vy16, h, ch, dx } = *job;
+    let CrossJob { pk, vx, vy, vx16, vy16, h, ch, dx } = *job;
     let bf16 = BF;
-    let (n, np, c) = (pk.n, pk.np, pk.heads * D);
+    let (n, np, ld, c) = (pk.n, pk.np, pk.ld, pk.heads * D);
     if vy.data.len() < (n - 1) * vy.stride + c || vx.data.len() < (pk.m - 1) * vx.stride + c {
         return Err(internal("fused cross attention values".into()));
     }
     let mut st = ColumnState { max: vec![NEG; np], sum: vec![0.0; np], acc: vec![0.0; np * D] };
-    let mut s = vec![0.0f32; STRIP * np];
-    let mut p16 = vec![0u16; if bf16 { STRIP * np } else { 0 }];
+    let mut s = vec![0.0f32; STRIP * ld];
+    let mut p16 = vec![0u16; if bf16 { STRIP * ld } else { 0 }];
     let mut factor = vec![0.0f32; np];
     let first = ch * CROSS_ROWS;
     let last = (first + CROSS_ROWS).min(pk.m);
     for r0 in (first..last).step_by(STRIP) {
         let rows = STRIP.min(last - r0);
         if bf16 {
-            scores_bf16::<D>(pk.q16.as_ptr().add((h * pk.mp + r0) * D), pk.k16.as_ptr().add(h * np * D), n, np, s.as_mut_ptr());
+            scores_bf16::<D>(pk.q16.as_ptr().add((h * pk.mp + r0) * D), pk.k16.as_ptr().add(h * np * D), n, np, s.as_mut_ptr(), ld);
         } else {
-            scores_f32::<D>(pk.q.as_ptr().add((h * pk.mp + r0) * D), pk.k.as_ptr().add(h * np * D), n, np, s.as_mut_ptr());
+            scores_f32::<D>(pk.q.as_ptr().add((h * pk.mp + r0) * D), pk.k.as_ptr().add(h * np * D), n, np, s.as_mut_ptr(), ld);
         }
         // Columns: new running maxima over the valid rows; rescale what grew.
         let sp = s.as_ptr();
@@ -567,7 +572,7 @@ unsafe fn cross_chunk<const D: usize, const BF: bool>(job: &CrossJob) -> Result<
             let mut bm = _mm512_loadu_ps(st.max.as_ptr().add(j));
             let old = bm;
             for r in 0..rows {
-                bm = _mm512_max_ps(bm, _mm512_loadu_ps(sp.add(r * np + j)));
+                bm = _mm512_max_ps(bm, _mm512_loadu_ps(sp.add(r * ld + j)));
             }
             let f = exp2v(_mm512_sub_ps(old, bm));
             _mm512_storeu_ps(st.max.as_mut_ptr().add(j), bm);
@@ -584,18 +589,23 @@ unsafe fn cross_chunk<const D: usize, const BF: bool>(job: &CrossJob) -> Result<
                 }
             }
         }
-        column_values::<D>(sp, np, rows, &mut st, vx.data.as_ptr().add(r0 * vx.stride + h * D), vx.stride);
+        if bf16 {
+            // Pairs of rows r0, r0+1, … (r0 is even): pair index r0/2 of the packed values.
+            column_values_bf16::<D>(sp, np, ld, rows, &mut st, vx16.as_ptr().add((h * pk.m.div_ceil(2) + r0 / 2) * D * 2));
+        } else {
+            column_values::<D>(sp, np, ld, rows, &mut st, vx.data.as_ptr().add(r0 * vx.stride + h * D), vx.stride);
+        }
         // Rows: softmax over the keys, values of image 1.
         let mut inv = [0.0f32; STRIP];
         for (r, iv) in inv.iter_mut().enumerate() {
-            let p = bf16.then(|| p16.as_mut_ptr().add(r * np));
-            *iv = 1.0 / exp_row(s.as_mut_ptr().add(r * np), np, p);
+            let p = bf16.then(|| p16.as_mut_ptr().add(r * ld));
+            *iv = 1.0 / exp_row(s.as_mut_ptr().add(r * ld), np, p);
         }
         let mut out = [[0.0f32; 64]; STRIP];
         if bf16 {
-            values_bf16::<D>(p16.as_ptr(), np, n, vy16.as_ptr().add(h * n.div_ceil(2) * D * 2), &mut out);
+            values_bf16::<D>(p16.as_ptr(), ld, n, vy16.as_ptr().add(h * n.div_ceil(2) * D * 2), &mut out);
         } else {
-            values_f32::<D>(s.as_ptr(), np, n, vy.data.as_ptr().add(h * D), vy.stride, &mut out);
+            values_f32::<D>(s.as_ptr(), ld, n, vy.data.as_ptr().add(h * D), vy.stride, &mut out);
         }
         for (r, o) in out.iter().enumerate().take(rows) {
             let row = dx.at((r0 + r) * c + h * D);
@@ -610,10 +620,59 @@ unsafe fn cross_chunk<const D: usize, const BF: bool>(job: &CrossJob) -> Result<
     Ok(st)
 }
 
+/// [`column_values`] with bf16 products: `e` is rounded to bf16 and paired along rows,
+/// `vx16` holds the strip's values packed by [`pack_values_bf16`]; maxima and sums stay fp32.
+#[inline(always)]
+unsafe fn column_values_bf16<const D: usize>(s: *const f32, np: usize, ld: usize, rows: usize, st: &mut ColumnState, vx16: *const u16) {
+    let dv = D / 16;
+    let cols = 16 / dv;
+    // Lane k of the result takes 16-bit lane idx[k]: e_r[0], e_r+1[0], e_r[1], e_r+1[1], …
+    let idx = _mm512_set_epi16(
+        31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8, 23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0,
+    );
+    let pairs = rows.div_ceil(2);
+    let mut e = [[0u32; 16]; STRIP / 2];
+    for j0 in (0..np).step_by(16) {
+        let mx = _mm512_loadu_ps(st.max.as_ptr().add(j0));
+        let mut sum = _mm512_loadu_ps(st.sum.as_ptr().add(j0));
+        for (p, ep) in e.iter_mut().enumerate().take(pairs) {
+            let r = 2 * p;
+            let x0 = exp2v(_mm512_sub_ps(_mm512_loadu_ps(s.add(r * ld + j0)), mx));
+            let x1 = if r + 1 < rows { exp2v(_mm512_sub_ps(_mm512_loadu_ps(s.add((r + 1) * ld + j0)), mx)) } else { _mm512_setzero_ps() };
+            sum = _mm512_add_ps(sum, _mm512_add_ps(x0, x1));
+            let both = std::mem::transmute::<__m512bh, __m512i>(_mm512_cvtne2ps_pbh(x1, x0));
+            _mm512_storeu_si512(ep.as_mut_ptr() as *mut _, _mm512_permutexvar_epi16(idx, both));
+        }
+        _mm512_storeu_ps(st.sum.as_mut_ptr().add(j0), sum);
+        for jt in (0..16).step_by(cols) {
+            let mut acc = [_mm512_setzero_ps(); 16];
+            for (p, ep) in e.iter().enumerate().take(pairs) {
+                let vp = vx16.add(p * D * 2);
+                let mut vr = [std::mem::transmute::<__m512i, __m512bh>(_mm512_setzero_si512()); 4];
+                for (cc, x) in vr.iter_mut().enumerate().take(dv) {
+                    *x = std::mem::transmute::<__m512i, __m512bh>(_mm512_loadu_si512(vp.add(cc * 32) as *const _));
+                }
+                for jj in 0..cols {
+                    let a = std::mem::transmute::<__m512i, __m512bh>(_mm512_set1_epi32(ep[jt + jj] as i32));
+                    for cc in 0..dv {
+                        acc[jj * dv + cc] = _mm512_dpbf16_ps(acc[jj * dv + cc], a, vr[cc]);
+                    }
+                }
+            }
+            for jj in 0..cols {
+                let ap = st.acc.as_mut_ptr().add((j0 + jt + jj) * D);
+                for cc in 0..dv {
+                    _mm512_storeu_ps(ap.add(cc * 16), _mm512_add_ps(_mm512_loadu_ps(ap.add(cc * 16)), acc[jj * dv + cc]));
+                }
+            }
+        }
+    }
+}
+
 /// Column direction of one strip: `e_rj = 2^(s_rj − max_j)`, `sum_j += Σ_r e_rj` and
 /// `acc_j += Σ_r e_rj·vx_r` (fp32: these sums are few per column and stay exact enough).
 #[inline(always)]
-unsafe fn column_values<const D: usize>(s: *const f32, np: usize, rows: usize, st: &mut ColumnState, vx: *const f32, vx_stride: usize) {
+unsafe fn column_values<const D: usize>(s: *const f32, np: usize, ld: usize, rows: usize, st: &mut ColumnState, vx: *const f32, vx_stride: usize) {
     let dv = D / 16;
     let cols = 16 / dv; // columns per register tile: cols·dv = 16 accumulators
     let mut e = [[0.0f32; 16]; STRIP];
@@ -621,7 +680,7 @@ unsafe fn column_values<const D: usize>(s: *const f32, np: usize, rows: usize, s
         let mx = _mm512_loadu_ps(st.max.as_ptr().add(j0));
         let mut sum = _mm512_loadu_ps(st.sum.as_ptr().add(j0));
         for (r, er) in e.iter_mut().enumerate().take(rows) {
-            let x = exp2v(_mm512_sub_ps(_mm512_loadu_ps(s.add(r * np + j0)), mx));
+            let x = exp2v(_mm512_sub_ps(_mm512_loadu_ps(s.add(r * ld + j0)), mx));
             sum = _mm512_add_ps(sum, x);
             _mm512_storeu_ps(er.as_mut_ptr(), x);
         }
