@@ -43,10 +43,8 @@ pub fn attention(ctx: &Ctx, q: View, k: View, v: View, heads: usize, col_sums: b
     let d = c / heads;
     if let Some(bf16) = fused(ctx, d) {
         ctx.add_macs(2 * (m * n * c) as u64);
-        // Column sums pick the keypoints that attentional pooling keeps: a discrete choice
-        // that bf16 rounding would flip, so those layers stay fp32.
         #[cfg(target_arch = "x86_64")]
-        return crate::attention_fused::attention(q, k, v, heads, col_sums, bf16 && !col_sums);
+        return crate::attention_fused::attention(q, k, v, heads, col_sums, bf16);
     }
     let scale = 1.0 / (d as f32).sqrt();
     let mut out = Matrix::zeros(m, c);
@@ -174,7 +172,7 @@ pub struct Projections {
 
 impl Projections {
     pub fn new(c: usize, vb: VarBuilder) -> CResult<Self> {
-        let p = (Linear::new(c, c, vb.pp(0))?, Linear::new(c, c, vb.pp(1))?, Linear::new(c, c, vb.pp(2))?);
+        let p = (Linear::new(c, c, vb.pp(0))?.with_bf16(), Linear::new(c, c, vb.pp(1))?.with_bf16(), Linear::new(c, c, vb.pp(2))?.with_bf16());
         Ok(Self { qkv: Linear::concat(&[&p.0, &p.1, &p.2]), dim: c })
     }
 
@@ -199,7 +197,7 @@ pub struct Attention {
 
 impl Attention {
     pub fn new(c: usize, heads: usize, vb: VarBuilder) -> CResult<Self> {
-        Ok(Self { proj: Projections::new(c, vb.pp("proj"))?, merge: Linear::new(c, c, vb.pp("merge"))?, heads })
+        Ok(Self { proj: Projections::new(c, vb.pp("proj"))?, merge: Linear::new(c, c, vb.pp("merge"))?.with_bf16(), heads })
     }
 
     /// `merge(attn(q(x), k(src), v(src)))` written into `dst` (row stride `dst_stride`).

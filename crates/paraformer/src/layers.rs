@@ -7,7 +7,7 @@ use candle_nn::VarBuilder;
 use crate::attention::{attention, cross_attention_shared, Attention, Projections};
 use crate::config::{LayerKind, ParallelSwitches};
 use crate::error::Result;
-use crate::kernels::{gelu, layer_norm, Ctx, Matrix, View};
+use crate::kernels::{gelu, layer_norm, Ctx, Matrix, Precision, View};
 use crate::mlp::{add_assign, read, with_room, Linear, Mlp};
 
 /// The parallel layer's projections, prefix `attn`. With sharing on, `proj` and
@@ -30,10 +30,10 @@ impl ParallelAttention {
             (Projections::new(c, vb.pp("self_proj"))?, Some(Projections::new(c, vb.pp("cross_proj"))?))
         };
         let (self_merge, cross_merge) = if sw.share_merge {
-            let m = Linear::new(c, c, vb.pp("merge"))?;
+            let m = Linear::new(c, c, vb.pp("merge"))?.with_bf16();
             (m.clone(), m)
         } else {
-            (Linear::new(c, c, vb.pp("self_merge"))?, Linear::new(c, c, vb.pp("cross_merge"))?)
+            (Linear::new(c, c, vb.pp("self_merge"))?.with_bf16(), Linear::new(c, c, vb.pp("cross_merge"))?.with_bf16())
         };
         Ok(Self { self_proj, cross_proj, self_merge, cross_merge, share_attention_weights: sw.share_attention_weights, heads })
     }
@@ -52,10 +52,10 @@ impl Fuse {
     pub fn new(c: usize, vb: VarBuilder) -> CResult<Self> {
         let n = vb.pp(1);
         Ok(Self {
-            l0: Linear::new(3 * c, 2 * c, vb.pp(0))?,
+            l0: Linear::new(3 * c, 2 * c, vb.pp(0))?.with_bf16(),
             norm_weight: read(&n, &[2 * c], "weight")?,
             norm_bias: read(&n, &[2 * c], "bias")?,
-            l3: Linear::new(2 * c, c, vb.pp(3))?,
+            l3: Linear::new(2 * c, c, vb.pp(3))?.with_bf16(),
         })
     }
 
@@ -89,6 +89,18 @@ impl ParallelLayer {
 
     /// Self- and cross-attention of both images at once; `x` `[M, C]`, `y` `[N, C]`.
     pub fn forward(&self, ctx: &Ctx, x: &Matrix, y: &Matrix, want_col_sums: bool) -> Result<ParallelOutput> {
+        if want_col_sums && ctx.precision == Precision::Bf16 {
+            // Its column sums choose the keypoints ParaFormer-U's pooling keeps, a discrete
+            // choice that bf16 rounding would flip: this layer runs in fp32.
+            let fp32 = Ctx::with_precision(Precision::Fp32);
+            let out = self.forward_in(&fp32, x, y, true);
+            ctx.add_macs(fp32.macs());
+            return out;
+        }
+        self.forward_in(ctx, x, y, want_col_sums)
+    }
+
+    fn forward_in(&self, ctx: &Ctx, x: &Matrix, y: &Matrix, want_col_sums: bool) -> Result<ParallelOutput> {
         let a = &self.attn;
         let (h, c) = (a.heads, x.cols);
         let (px, py) = (a.self_proj.qkv(ctx, x.view())?, a.self_proj.qkv(ctx, y.view())?);
@@ -154,7 +166,7 @@ pub struct SerialLayer {
 
 impl SerialLayer {
     pub fn new(c: usize, heads: usize, kind: LayerKind, vb: VarBuilder) -> CResult<Self> {
-        Ok(Self { attn: Attention::new(c, heads, vb.pp("attn"))?, mlp: Mlp::new(&[2 * c, 2 * c, c], vb.pp("mlp"))?, kind })
+        Ok(Self { attn: Attention::new(c, heads, vb.pp("attn"))?, mlp: Mlp::new(&[2 * c, 2 * c, c], vb.pp("mlp"))?.with_bf16(), kind })
     }
 
     fn update(&self, ctx: &Ctx, f: &Matrix, src: &Matrix) -> Result<Matrix> {

@@ -45,6 +45,8 @@ pub mod features;
 pub mod flops;
 pub mod geometry;
 #[doc(hidden)]
+pub mod gemm_bf16;
+#[doc(hidden)]
 pub mod kernels;
 #[doc(hidden)]
 pub mod layers;

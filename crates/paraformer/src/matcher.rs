@@ -14,7 +14,7 @@ use crate::kernels::{Ctx, Matrix, Precision};
 use crate::layers::{ParallelLayer, SerialLayer};
 use crate::mlp::Linear;
 use crate::pooling::{Pool, Unpool};
-use crate::sinkhorn::{extract_matches, log_optimal_transport_inplace, Matches};
+use crate::sinkhorn::{extract_matches, log_optimal_transport_inplace, log_optimal_transport_inplace_bf16, Matches};
 use crate::wave_pe::PositionEncoder;
 use crate::weights::Weights;
 
@@ -361,7 +361,11 @@ impl Matcher {
             let mut z = self.network.couplings(&ctx, f0, f1, &mut profile)?;
             profile.macs = ctx.macs();
             let t = Instant::now();
-            log_optimal_transport_inplace(&mut z, self.network.bin_score, self.config.sinkhorn_iterations);
+            if ctx.precision == Precision::Bf16 {
+                log_optimal_transport_inplace_bf16(&mut z, self.network.bin_score, self.config.sinkhorn_iterations);
+            } else {
+                log_optimal_transport_inplace(&mut z, self.network.bin_score, self.config.sinkhorn_iterations);
+            }
             profile.sinkhorn = t.elapsed().as_secs_f64();
             let t = Instant::now();
             let matches = extract_matches(&z, self.config.match_threshold);

@@ -7,7 +7,7 @@ use candle_core::Result as CResult;
 use candle_nn::VarBuilder;
 
 use crate::error::Result;
-use crate::kernels::{relu, Ctx, Matrix, View};
+use crate::kernels::{relu, Ctx, Matrix, Precision, View};
 
 /// Reads a tensor of the given shape as a flat `Vec<f32>`.
 pub(crate) fn read(vb: &VarBuilder, shape: &[usize], name: &str) -> CResult<Vec<f32>> {
@@ -22,6 +22,11 @@ pub struct Linear {
     bias: Vec<f32>,
     pub in_dim: usize,
     pub out_dim: usize,
+    /// Runs in bf16 under `Precision::Bf16` (the attention layers' Linears; encoders and
+    /// the final projection stay fp32).
+    bf16: bool,
+    /// `Wᵀ` packed for the bf16 product, made on first use.
+    packed: std::sync::OnceLock<Vec<u16>>,
 }
 
 impl Linear {
@@ -34,7 +39,13 @@ impl Linear {
                 wt[i * out_dim + o] = w[o * in_dim + i];
             }
         }
-        Ok(Self { wt, bias, in_dim, out_dim })
+        Ok(Self { wt, bias, in_dim, out_dim, bf16: false, packed: Default::default() })
+    }
+
+    /// This layer, allowed to run in bf16 when the context asks for it.
+    pub fn with_bf16(mut self) -> Self {
+        self.bf16 = true;
+        self
     }
 
     /// Several Linear layers on the same input, as one with their outputs side by side.
@@ -48,7 +59,8 @@ impl Linear {
             }
         }
         let bias = parts.iter().flat_map(|p| p.bias.iter().copied()).collect();
-        Linear { wt, bias, in_dim, out_dim }
+        let bf16 = parts.iter().all(|p| p.bf16);
+        Linear { wt, bias, in_dim, out_dim, bf16, packed: Default::default() }
     }
 
     /// Folds a following per-channel affine map `y·scale + shift` into the layer.
@@ -74,6 +86,12 @@ impl Linear {
 
     /// `dst += x·Wᵀ` for output columns `c0..c1`.
     fn accumulate(&self, ctx: &Ctx, x: View, c0: usize, c1: usize, dst: &mut [f32], dst_stride: usize) -> Result<()> {
+        #[cfg(target_arch = "x86_64")]
+        if self.bf16 && ctx.precision == Precision::Bf16 && c0 % 16 == 0 && crate::gemm_bf16::available() {
+            ctx.add_macs((x.rows * (c1 - c0) * self.in_dim) as u64);
+            let wp = self.packed.get_or_init(|| crate::gemm_bf16::pack_weights(&self.wt, self.in_dim, self.out_dim));
+            return crate::gemm_bf16::gemm_acc(dst, dst_stride, x, wp, self.in_dim, self.out_dim, c0, c1);
+        }
         let w = View { data: &self.wt, rows: self.in_dim, cols: self.out_dim, stride: self.out_dim }.cols(c0, c1);
         ctx.gemm(dst, dst_stride, x, false, w, false, 1.0, true, true)
     }
@@ -104,6 +122,14 @@ impl Linear {
 #[derive(Debug, Clone)]
 pub struct Mlp {
     linears: Vec<Linear>,
+}
+
+impl Mlp {
+    /// This MLP with every Linear allowed to run in bf16 (see [`Linear::with_bf16`]).
+    pub fn with_bf16(mut self) -> Self {
+        self.linears = self.linears.into_iter().map(Linear::with_bf16).collect();
+        self
+    }
 }
 
 impl Mlp {
