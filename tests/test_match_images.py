@@ -99,3 +99,14 @@ def test_rotated_pairs_need_rotations_4():
     print(f"rotated pairs recovered within 3 px: rotations=1 {ok1}/{total}, rotations=4 {ok4}/{total}")
     assert ok4 >= 0.9 * total
     assert ok1 <= 0.2 * total
+
+
+def test_match_images_in_bf16_agrees_with_fp32():
+    import paraformer
+
+    a = paraformer.match_images(SAMPLE / "coffee_0.jpg", SAMPLE / "coffee_1.jpg")
+    b = paraformer.match_images(SAMPLE / "coffee_0.jpg", SAMPLE / "coffee_1.jpg", precision="bf16")
+    pa, pb = {tuple(m) for m in a["matches"].tolist()}, {tuple(m) for m in b["matches"].tolist()}
+    assert len(pa & pb) >= 0.97 * len(pa)
+    with pytest.raises(ValueError, match="precision"):
+        paraformer.match_images(SAMPLE / "coffee_0.jpg", SAMPLE / "coffee_1.jpg", precision="fp64")

@@ -38,9 +38,9 @@ class Baseline:
         return [self.match_dicts(f0, f1) for f0, f1 in pairs]
 
 
-def load_matcher(matcher: Any) -> Any:
+def load_matcher(matcher: Any, precision: str = "fp32") -> Any:
     """A matcher from a shipped name, a baseline (``mnn``, ``nn``, ``ratio[:R]``), a weights
-    file or a ``paraformer.Matcher`` (returned as is)."""
+    file (loaded in ``precision``) or a ``paraformer.Matcher`` (returned as is)."""
     from . import Matcher, pretrained_names
 
     if isinstance(matcher, (Matcher, Baseline)):
@@ -49,11 +49,11 @@ def load_matcher(matcher: Any) -> Any:
         raise ValueError(f"matcher: expected a name, a weights file or a Matcher, got {type(matcher).__name__}")
     spec = os.fspath(matcher)
     if spec in pretrained_names():
-        return Matcher.pretrained(spec)
+        return Matcher.pretrained(spec, precision=precision)
     if spec.partition(":")[0] in BASELINES:
         return Baseline(spec)
     if Path(spec).is_file():
-        return Matcher.from_file(spec)
+        return Matcher.from_file(spec, precision=precision)
     raise ValueError(f"matcher: {spec!r} is not a pretrained name ({', '.join(pretrained_names())}), "
                      f"a baseline ({', '.join(BASELINES)}) or a weights file")
 
@@ -90,7 +90,8 @@ def unrotate(points: np.ndarray, k: int, width: int, height: int) -> np.ndarray:
 
 
 def match_images(image0: Any, image1: Any, *, matcher: Any = "paraformer-xfeat", max_keypoints: int = 2048,
-                 geometry: Optional[str] = "homography", threshold: float = 3.0, rotations: int = 1) -> dict:
+                 geometry: Optional[str] = "homography", threshold: float = 3.0, rotations: int = 1,
+                 precision: str = "fp32") -> dict:
     """Matches two images end to end: XFeat, a matcher, RANSAC (``paraformer match``).
 
     With ``rotations=4``, image1 is also matched turned by 90, 180 and 270° (XFeat's
@@ -104,6 +105,8 @@ def match_images(image0: Any, image1: Any, *, matcher: Any = "paraformer-xfeat",
         geometry: ``"homography"``, ``"fundamental"`` or None (no RANSAC).
         threshold: RANSAC inlier threshold in pixels.
         rotations: 1 (as given) or 4 (also 90, 180, 270°).
+        precision: ``"fp32"`` or ``"bf16"`` for a learned matcher given by name or file
+            (see ``paraformer.Matcher``).
     Returns:
         ``keypoints0`` ``[M, 2]``, ``keypoints1`` ``[N, 2]``, ``matches`` int64 ``[K, 2]``
         (index pairs), ``scores`` ``[K]``, ``model`` (3×3 or None), ``inliers`` bool ``[K]``
@@ -118,7 +121,7 @@ def match_images(image0: Any, image1: Any, *, matcher: Any = "paraformer-xfeat",
         raise ValueError(f"geometry: expected 'homography', 'fundamental' or None, got {geometry!r}")
     if not isinstance(threshold, (int, float)) or isinstance(threshold, bool) or not np.isfinite(threshold) or threshold <= 0:
         raise ValueError(f"threshold: expected a positive number of pixels, got {threshold!r}")
-    model_fn = load_matcher(matcher)
+    model_fn = load_matcher(matcher, precision)
     img0, img1 = load_image(image0, "image0"), load_image(image1, "image1")
     h1, w1 = img1.shape
     f0 = extract(img0, max_keypoints=max_keypoints)

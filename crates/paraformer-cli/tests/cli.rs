@@ -197,3 +197,14 @@ fn every_subcommand_and_argument_has_help() {
         }
     }
 }
+
+#[test]
+fn precision_bf16_matches_the_sample_pair_and_bad_values_are_named() {
+    let (ok, out, err) = run(&["match", &sample("coffee_0.jpg"), &sample("coffee_1.jpg"), "--precision", "bf16"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("inliers"), "{out}");
+    let (ok, out, _) = run(&["bench", "--model", "paraformer-xfeat", "--keypoints", "256", "--repeat", "1", "--precision", "bf16"]);
+    assert!(ok && out.contains("precision: bf16"), "{out}");
+    let (ok, _, err) = run(&["match", &sample("coffee_0.jpg"), &sample("coffee_1.jpg"), "--precision", "fp16"]);
+    assert!(!ok && err.contains("--precision") && err.contains("fp16"), "{err}");
+}
