@@ -91,39 +91,40 @@ fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
     let (mp, np) = (m.div_ceil(STRIP) * STRIP, n.div_ceil(32) * 32);
     let factor = std::f32::consts::LOG2_E / (d as f32).sqrt();
     let mut p = Packed { heads, d, m, n, mp, np, ld: np + 16, q: Vec::new(), k: Vec::new(), q16: Vec::new(), k16: Vec::new() };
+    // Queries: one strip of STRIP rows of one head per task; keys: one 16-column panel.
+    let q_strip = |h: usize, i0: usize, out: &mut dyn FnMut(usize, usize, f32)| {
+        for i in i0..(i0 + STRIP).min(m) {
+            for (t, &v) in q.row(i)[h * d..(h + 1) * d].iter().enumerate() {
+                out(i - i0, t, v * factor);
+            }
+        }
+    };
+    let k_panel = |h: usize, panel: usize, out: &mut dyn FnMut(usize, usize, f32)| {
+        for j in panel * 16..(panel * 16 + 16).min(n) {
+            for (t, &v) in k.row(j)[h * d..(h + 1) * d].iter().enumerate() {
+                out(j % 16, t, v);
+            }
+        }
+    };
+    let strips = mp / STRIP;
     if bf16 {
         p.q16 = vec![0; heads * mp * d];
         p.k16 = vec![0; heads * np * d];
+        p.q16.par_chunks_mut(STRIP * d).enumerate().for_each(|(t, o)| {
+            q_strip(t / strips, (t % strips) * STRIP, &mut |r, c, v| o[r * d + c] = bf16_bits(v));
+        });
+        p.k16.par_chunks_mut(16 * d).enumerate().for_each(|(t, o)| {
+            k_panel(t / (np / 16), t % (np / 16), &mut |lane, c, v| o[(c / 2) * 32 + lane * 2 + c % 2] = bf16_bits(v));
+        });
     } else {
         p.q = vec![0.0; heads * mp * d];
         p.k = vec![0.0; heads * np * d];
-    }
-    for h in 0..heads {
-        for i in 0..m {
-            let src = &q.row(i)[h * d..(h + 1) * d];
-            let o = (h * mp + i) * d;
-            if bf16 {
-                for (t, &v) in src.iter().enumerate() {
-                    p.q16[o + t] = bf16_bits(v * factor);
-                }
-            } else {
-                for (t, &v) in src.iter().enumerate() {
-                    p.q[o + t] = v * factor;
-                }
-            }
-        }
-        for j in 0..n {
-            let src = &k.row(j)[h * d..(h + 1) * d];
-            let (panel, lane) = (j / 16, j % 16);
-            let base = (h * np / 16 + panel) * d * 16;
-            for (t, &v) in src.iter().enumerate() {
-                if bf16 {
-                    p.k16[base + (t / 2) * 32 + lane * 2 + t % 2] = bf16_bits(v);
-                } else {
-                    p.k[base + t * 16 + lane] = v;
-                }
-            }
-        }
+        p.q.par_chunks_mut(STRIP * d).enumerate().for_each(|(t, o)| {
+            q_strip(t / strips, (t % strips) * STRIP, &mut |r, c, v| o[r * d + c] = v);
+        });
+        p.k.par_chunks_mut(16 * d).enumerate().for_each(|(t, o)| {
+            k_panel(t / (np / 16), t % (np / 16), &mut |lane, c, v| o[c * 16 + lane] = v);
+        });
     }
     p
 }
@@ -135,18 +136,16 @@ fn pack_values_bf16(v: View, heads: usize) -> Vec<u16> {
     let d = c / heads;
     let half = n.div_ceil(2);
     let mut out = vec![0u16; heads * half * d * 2];
-    for h in 0..heads {
-        for j in 0..n {
-            let src = &v.row(j)[h * d..(h + 1) * d];
-            let base = (h * half + j / 2) * d * 2;
-            for (t, &x) in src.iter().enumerate() {
-                out[base + t * 2 + j % 2] = bf16_bits(x);
+    out.par_chunks_mut(d * 2).enumerate().for_each(|(t, o)| {
+        let (h, pair) = (t / half, t % half);
+        for j in 2 * pair..(2 * pair + 2).min(n) {
+            for (c, &x) in v.row(j)[h * d..(h + 1) * d].iter().enumerate() {
+                o[c * 2 + j % 2] = bf16_bits(x);
             }
         }
-    }
+    });
     out
 }
-
 // ---- vector helpers -----------------------------------------------------------------
 
 /// `2^x` to 2.4e-7 relative error (degree-5 minimax on [−½, ½] and `vscalefps`);

@@ -454,42 +454,11 @@ multiversion! {
     }
 }
 
-/// A bf16 value (the high half of an f32) as f32.
-#[inline(always)]
-fn from_bf16(x: u16) -> f32 {
-    f32::from_bits((x as u32) << 16)
-}
-
 /// f32 → bf16, round to nearest even (finite inputs).
 #[inline(always)]
 fn to_bf16(x: f32) -> u16 {
     let b = x.to_bits();
     ((b + 0x7FFF + ((b >> 16) & 1)) >> 16) as u16
-}
-
-multiversion! {
-    /// `Σ_j a_j · b_j` with `a` in bf16.
-    pub fn dot_bf16(a: &[u16], b: &[f32]) -> f32 {
-        let n = a.len().min(b.len());
-        let tail = n - n % LANES;
-        let mut acc = [0.0f32; LANES];
-        for i in (0..tail).step_by(LANES) {
-            let (ca, cb) = (&a[i..i + LANES], &b[i..i + LANES]);
-            for l in 0..LANES {
-                acc[l] += from_bf16(ca[l]) * cb[l];
-            }
-        }
-        acc.iter().sum::<f32>() + a[tail..n].iter().zip(&b[tail..n]).map(|(x, y)| from_bf16(*x) * y).sum::<f32>()
-    }
-}
-
-multiversion! {
-    /// `y += alpha · x` with `x` in bf16.
-    pub fn axpy_bf16(alpha: f32, x: &[u16], y: &mut [f32]) {
-        for (y, x) in y.iter_mut().zip(x) {
-            *y += alpha * from_bf16(*x);
-        }
-    }
 }
 
 multiversion! {

@@ -4,37 +4,116 @@
 use rayon::prelude::*;
 
 pub use crate::kernels::Matrix;
-use crate::kernels::{axpy, axpy_bf16, dot, dot_bf16, exp_row, exp_row_bf16, logsumexp_plus};
+use crate::kernels::{axpy, dot, exp_row, exp_row_bf16, logsumexp_plus};
 
-/// How the kernel `K` of the scaling-domain iterations is stored: f32, or bf16 (half the
-/// memory traffic of the sweeps, which are bound by it; sums stay f32).
+/// How the kernel `K` of the scaling-domain iterations is stored, per block of
+/// `TASK_ROWS` rows: f32 row-major, or bf16 with pairs of rows interleaved
+/// (`[rows/2][c][2]`, the layout `vdpbf16ps` reads). The sweeps are bound by memory
+/// traffic and instruction count, which bf16 halves; every sum stays f32.
 trait KernelStore: Copy + Default + Send + Sync {
-    fn fill(z: &[f32], f: f32, g: &[f32], k: &mut [Self]);
-    fn dot(k: &[Self], b: &[f32]) -> f32;
-    fn axpy(alpha: f32, k: &[Self], y: &mut [f32]);
+    /// Values `K` needs for `rows` rows of width `c`.
+    fn len(rows: usize, c: usize) -> usize;
+    /// `K_ij = exp(z_ij + f_i + g_j)` for the rows of one block.
+    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [Self], c: usize);
+    /// For the rows of one block: `a_i = μ_i / (K b)_i`, then `acc += Σ_i a_i K_i`.
+    fn sweep(k: &[Self], a: &mut [f32], mu: &[f32], b: &[f32], acc: &mut [f32], c: usize);
 }
 
 impl KernelStore for f32 {
-    fn fill(z: &[f32], f: f32, g: &[f32], k: &mut [f32]) {
-        exp_row(z, f, g, k)
+    fn len(rows: usize, c: usize) -> usize {
+        rows * c
     }
-    fn dot(k: &[f32], b: &[f32]) -> f32 {
-        dot(k, b)
+    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [f32], c: usize) {
+        for ((zr, kr), &fi) in z.chunks_exact(c).zip(k.chunks_exact_mut(c)).zip(f) {
+            exp_row(zr, fi, g, kr);
+        }
     }
-    fn axpy(alpha: f32, k: &[f32], y: &mut [f32]) {
-        axpy(alpha, k, y)
+    fn sweep(k: &[f32], a: &mut [f32], mu: &[f32], b: &[f32], acc: &mut [f32], c: usize) {
+        for ((ai, kr), mui) in a.iter_mut().zip(k.chunks_exact(c)).zip(mu) {
+            *ai = mui / dot(kr, b);
+            axpy(*ai, kr, acc);
+        }
     }
 }
 
 impl KernelStore for u16 {
-    fn fill(z: &[f32], f: f32, g: &[f32], k: &mut [u16]) {
-        exp_row_bf16(z, f, g, k)
+    fn len(rows: usize, c: usize) -> usize {
+        rows.div_ceil(2) * 2 * c
     }
-    fn dot(k: &[u16], b: &[f32]) -> f32 {
-        dot_bf16(k, b)
+    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [u16], c: usize) {
+        let mut row = vec![0u16; c];
+        for (i, (zr, &fi)) in z.chunks_exact(c).zip(f).enumerate() {
+            exp_row_bf16(zr, fi, g, &mut row);
+            let pair = &mut k[(i / 2) * 2 * c..(i / 2 + 1) * 2 * c];
+            for (j, &x) in row.iter().enumerate() {
+                pair[2 * j + i % 2] = x;
+            }
+        }
     }
-    fn axpy(alpha: f32, k: &[u16], y: &mut [f32]) {
-        axpy_bf16(alpha, k, y)
+    fn sweep(k: &[u16], a: &mut [f32], mu: &[f32], b: &[f32], acc: &mut [f32], c: usize) {
+        #[cfg(target_arch = "x86_64")]
+        if crate::gemm_bf16::available() {
+            // SAFETY: AVX-512 BF16 checked just above; slices sized by `len`.
+            return unsafe { sweep_bf16_pairs(k, a, mu, b, acc, c) };
+        }
+        for (p, pair) in k.chunks_exact(2 * c).enumerate() {
+            for h in 0..2.min(a.len() - 2 * p) {
+                let i = 2 * p + h;
+                let kv = |j: usize| f32::from_bits((pair[2 * j + h] as u32) << 16);
+                a[i] = mu[i] / (0..c).map(|j| kv(j) * b[j]).sum::<f32>();
+                for (j, y) in acc.iter_mut().enumerate() {
+                    *y += a[i] * kv(j);
+                }
+            }
+        }
+    }
+}
+
+/// [`KernelStore::sweep`] for bf16 pairs of rows: both rows' products with `b` from one
+/// load (the low and high halves of each 32-bit lane), and `acc += a_i K_i + a_i+1 K_i+1`
+/// as one `vdpbf16ps` with the pair `(a_i, a_i+1)` rounded to bf16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+unsafe fn sweep_bf16_pairs(k: &[u16], a: &mut [f32], mu: &[f32], b: &[f32], acc: &mut [f32], c: usize) {
+    use std::arch::x86_64::*;
+    let full = c / 16 * 16;
+    let hi_mask = _mm512_set1_epi32(0xFFFF_0000u32 as i32);
+    for (p, pair) in k.chunks_exact(2 * c).enumerate() {
+        let rows = 2.min(a.len() - 2 * p);
+        let (mut d0, mut d1) = (_mm512_setzero_ps(), _mm512_setzero_ps());
+        let kp = pair.as_ptr();
+        for j in (0..full).step_by(16) {
+            let x = _mm512_loadu_si512(kp.add(2 * j) as *const _);
+            let bj = _mm512_loadu_ps(b.as_ptr().add(j));
+            d0 = _mm512_fmadd_ps(_mm512_castsi512_ps(_mm512_slli_epi32::<16>(x)), bj, d0);
+            d1 = _mm512_fmadd_ps(_mm512_castsi512_ps(_mm512_and_si512(x, hi_mask)), bj, d1);
+        }
+        let (mut s0, mut s1) = (_mm512_reduce_add_ps(d0), _mm512_reduce_add_ps(d1));
+        for j in full..c {
+            s0 += f32::from_bits((pair[2 * j] as u32) << 16) * b[j];
+            s1 += f32::from_bits((pair[2 * j + 1] as u32) << 16) * b[j];
+        }
+        a[2 * p] = mu[2 * p] / s0;
+        let a1 = if rows == 2 {
+            a[2 * p + 1] = mu[2 * p + 1] / s1;
+            a[2 * p + 1]
+        } else {
+            0.0
+        };
+        let a0 = a[2 * p];
+        let to_bf16 = |x: f32| {
+            let u = x.to_bits();
+            (u + 0x7FFF + ((u >> 16) & 1)) >> 16
+        };
+        let ap = std::mem::transmute::<__m512i, __m512bh>(_mm512_set1_epi32((to_bf16(a0) | (to_bf16(a1) << 16)) as i32));
+        for j in (0..full).step_by(16) {
+            let x = std::mem::transmute::<__m512i, __m512bh>(_mm512_loadu_si512(kp.add(2 * j) as *const _));
+            let y = acc.as_mut_ptr().add(j);
+            _mm512_storeu_ps(y, _mm512_dpbf16_ps(_mm512_loadu_ps(y), ap, x));
+        }
+        for j in full..c {
+            acc[j] += a0 * f32::from_bits((pair[2 * j] as u32) << 16) + a1 * f32::from_bits((pair[2 * j + 1] as u32) << 16);
+        }
     }
 }
 
@@ -97,9 +176,13 @@ fn optimal_transport<K: KernelStore>(z: &mut Matrix, bin_score: f32, iters: usiz
     // Start with each row's maximum absorbed, so that K ≤ 1.
     let mut f: Vec<f32> = z.data.par_chunks(c).map(|row| -row.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b))).collect();
     let mut g = vec![0.0f32; c];
-    let mut k = vec![K::default(); r * c];
+    let mut k = vec![K::default(); K::len(r, c)];
+    let block = K::len(TASK_ROWS, c);
     let rebuild = |k: &mut [K], f: &[f32], g: &[f32]| {
-        k.par_chunks_mut(c).zip(z.data.par_chunks(c)).zip(f.par_iter()).for_each(|((kr, zr), &fi)| K::fill(zr, fi, g, kr));
+        k.par_chunks_mut(block)
+            .zip(z.data.par_chunks(TASK_ROWS * c))
+            .zip(f.par_chunks(TASK_ROWS))
+            .for_each(|((kb, zb), fb)| K::fill(zb, fb, g, kb, c));
     };
     rebuild(&mut k, &f, &g);
     let mut a = vec![1.0f32; r];
@@ -114,14 +197,11 @@ fn optimal_transport<K: KernelStore>(z: &mut Matrix, bin_score: f32, iters: usiz
         partial
             .par_chunks_mut(c)
             .zip(a.par_chunks_mut(TASK_ROWS))
-            .zip(k.par_chunks(TASK_ROWS * c))
+            .zip(k.par_chunks(block))
             .zip(mu.par_chunks(TASK_ROWS))
             .for_each(|(((acc, ac), kc), muc)| {
                 acc.fill(0.0);
-                for ((ai, kr), mui) in ac.iter_mut().zip(kc.chunks_exact(c)).zip(muc) {
-                    *ai = mui / K::dot(kr, &b);
-                    K::axpy(*ai, kr, acc);
-                }
+                K::sweep(kc, ac, muc, &b, acc, c);
             });
         kta.fill(0.0);
         for acc in partial.chunks_exact(c) {
