@@ -92,38 +92,45 @@ fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
     let factor = std::f32::consts::LOG2_E / (d as f32).sqrt();
     let mut p = Packed { heads, d, m, n, mp, np, ld: np + 16, q: Vec::new(), k: Vec::new(), q16: Vec::new(), k16: Vec::new() };
     // Queries: one strip of STRIP rows of one head per task; keys: one 16-column panel.
-    let q_strip = |h: usize, i0: usize, out: &mut dyn FnMut(usize, usize, f32)| {
-        for i in i0..(i0 + STRIP).min(m) {
-            for (t, &v) in q.row(i)[h * d..(h + 1) * d].iter().enumerate() {
-                out(i - i0, t, v * factor);
-            }
-        }
-    };
-    let k_panel = |h: usize, panel: usize, out: &mut dyn FnMut(usize, usize, f32)| {
-        for j in panel * 16..(panel * 16 + 16).min(n) {
-            for (t, &v) in k.row(j)[h * d..(h + 1) * d].iter().enumerate() {
-                out(j % 16, t, v);
-            }
-        }
-    };
     let strips = mp / STRIP;
+    let panels = np / 16;
     if bf16 {
         p.q16 = vec![0; heads * mp * d];
         p.k16 = vec![0; heads * np * d];
         p.q16.par_chunks_mut(STRIP * d).enumerate().for_each(|(t, o)| {
-            q_strip(t / strips, (t % strips) * STRIP, &mut |r, c, v| o[r * d + c] = bf16_bits(v));
+            let (h, i0) = (t / strips, (t % strips) * STRIP);
+            for i in i0..(i0 + STRIP).min(m) {
+                for (x, &v) in o[(i - i0) * d..(i - i0 + 1) * d].iter_mut().zip(&q.row(i)[h * d..(h + 1) * d]) {
+                    *x = bf16_bits(v * factor);
+                }
+            }
         });
         p.k16.par_chunks_mut(16 * d).enumerate().for_each(|(t, o)| {
-            k_panel(t / (np / 16), t % (np / 16), &mut |lane, c, v| o[(c / 2) * 32 + lane * 2 + c % 2] = bf16_bits(v));
+            let (h, j0) = (t / panels, (t % panels) * 16);
+            for j in j0..(j0 + 16).min(n) {
+                for (c, &v) in k.row(j)[h * d..(h + 1) * d].iter().enumerate() {
+                    o[(c / 2) * 32 + (j - j0) * 2 + c % 2] = bf16_bits(v);
+                }
+            }
         });
     } else {
         p.q = vec![0.0; heads * mp * d];
         p.k = vec![0.0; heads * np * d];
         p.q.par_chunks_mut(STRIP * d).enumerate().for_each(|(t, o)| {
-            q_strip(t / strips, (t % strips) * STRIP, &mut |r, c, v| o[r * d + c] = v);
+            let (h, i0) = (t / strips, (t % strips) * STRIP);
+            for i in i0..(i0 + STRIP).min(m) {
+                for (x, &v) in o[(i - i0) * d..(i - i0 + 1) * d].iter_mut().zip(&q.row(i)[h * d..(h + 1) * d]) {
+                    *x = v * factor;
+                }
+            }
         });
         p.k.par_chunks_mut(16 * d).enumerate().for_each(|(t, o)| {
-            k_panel(t / (np / 16), t % (np / 16), &mut |lane, c, v| o[c * 16 + lane] = v);
+            let (h, j0) = (t / panels, (t % panels) * 16);
+            for j in j0..(j0 + 16).min(n) {
+                for (c, &v) in k.row(j)[h * d..(h + 1) * d].iter().enumerate() {
+                    o[c * 16 + (j - j0)] = v;
+                }
+            }
         });
     }
     p
