@@ -8,7 +8,10 @@ the PyTorch reference model (training/paraformer_train) against the Rust engine
 
 Prints, per model: PyTorch and Rust latency and their ratio, the Rust network part's
 FLOP rate (2·MACs / time, everything but Sinkhorn) against numpy's GEMM rate, the
-Sinkhorn share of end-to-end time, and ParaFormer-U's latency relative to ParaFormer.
+Sinkhorn share of end-to-end time, ParaFormer-U's latency relative to ParaFormer, and
+the bf16 row: Rust with `precision="bf16"` (where the CPU has AVX-512 BF16), its speed-up
+over Rust fp32 and the share of its matches equal to fp32's. The shipped models against
+LighterGlue on real pairs: `benches/shipped_compare.py`.
 """
 from __future__ import annotations
 
@@ -60,7 +63,8 @@ def main() -> None:
     rng = np.random.default_rng(1)
     results = []
     header = (f"{'model':<13}{'kp':>6}{'torch s':>10}{'rust s':>9}{'speed-up':>10}"
-              f"{'net GFLOP/s':>13}{'/ numpy':>9}{'sinkhorn':>10}{'matches =':>11}")
+              f"{'net GFLOP/s':>13}{'/ numpy':>9}{'sinkhorn':>10}{'matches =':>11}"
+              f"{'bf16 s':>9}{'bf16/fp32':>10}{'bf16 =':>8}")
     print(header)
     rust_models = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -74,6 +78,7 @@ def main() -> None:
             path = os.path.join(tmp, f"{model_name}.safetensors")
             save_safetensors(ref, path)
             rust = paraformer.Matcher.from_file(path)
+            rust16 = paraformer.Matcher.from_file(path, precision="bf16")
             for k in args.keypoints:
                 kp = [rng.uniform(0, 640, (k, 2)).astype(np.float32) for _ in range(2)]
                 desc = [rng.standard_normal((k, 256)).astype(np.float32) for _ in range(2)]
@@ -91,8 +96,20 @@ def main() -> None:
                 def run_rust():
                     return rust.match(kp[0], desc[0], kp[1], desc[1], size0=size, size1=size, scores0=sc[0], scores1=sc[1])
 
+                def run_bf16():
+                    return rust16.match(kp[0], desc[0], kp[1], desc[1], size0=size, size1=size, scores0=sc[0], scores1=sc[1])
+
                 t_torch = best(run_torch, args.repeat)
-                t_rust = best(run_rust, args.repeat)
+                # fp32 and bf16 alternated call by call, the best of each kept.
+                run_rust(), run_bf16()
+                t32, t16 = [], []
+                for _ in range(max(3, args.repeat)):
+                    for fn, ts in ((run_rust, t32), (run_bf16, t16)):
+                        t = time.perf_counter()
+                        fn()
+                        ts.append(time.perf_counter() - t)
+                t_rust, t_bf16 = min(t32), min(t16)
+                same16 = float((run_bf16()["matches0"] == run_rust()["matches0"]).mean())
                 prof = min((rust.profile(kp[0], desc[0], kp[1], desc[1], size0=size, size1=size,
                                          scores0=sc[0], scores1=sc[1]) for _ in range(args.repeat)),
                            key=lambda p: p["total"])
@@ -105,11 +122,13 @@ def main() -> None:
                     "rust_profile": prof, "net_gflops": net_gflops, "numpy_gflops": numpy_gflops,
                     "net_fraction_of_numpy": net_gflops / numpy_gflops,
                     "sinkhorn_fraction": prof["sinkhorn"] / prof["total"], "matches_agree": same,
+                    "bf16_runs_as": rust16.precision, "rust_bf16_s": t_bf16, "bf16_speedup_over_fp32": t_rust / t_bf16,
+                    "bf16_matches_agree_with_fp32": same16,
                 }
                 results.append(row)
                 print(f"{model_name:<13}{k:>6}{t_torch:>10.3f}{t_rust:>9.3f}{row['speedup']:>9.1f}×"
                       f"{net_gflops:>13.1f}{row['net_fraction_of_numpy']:>8.0%} {row['sinkhorn_fraction']:>9.1%}"
-                      f"{same:>10.1%}")
+                      f"{same:>10.1%}{t_bf16:>9.3f}{t_rust / t_bf16:>9.2f}×{same16:>8.1%}")
             rust_models[model_name] = (rust, path)
     # ParaFormer-U against ParaFormer: the two Rust engines alternated call by call, so
     # that both see the same machine state; the best of each is compared.

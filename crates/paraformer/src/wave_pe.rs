@@ -38,9 +38,11 @@ pub struct WavePe {
 impl WavePe {
     pub fn new(c: usize, vb: VarBuilder) -> CResult<Self> {
         Ok(Self {
-            amplitude: Mlp::new(&[c, 4 * c, c], vb.pp("amplitude"))?,
+            // Under Precision::Bf16 the descriptor and wave MLPs may run in bf16; the phase
+            // MLP reads keypoint positions, whose precision matters, and stays fp32.
+            amplitude: Mlp::new(&[c, 4 * c, c], vb.pp("amplitude"))?.with_bf16(),
             phase: Mlp::new(&[3, c / 2, c], vb.pp("phase"))?,
-            fuse: Mlp::new(&[2 * c, 4 * c, c], vb.pp("fuse"))?,
+            fuse: Mlp::new(&[2 * c, 4 * c, c], vb.pp("fuse"))?.with_bf16(),
         })
     }
 
