@@ -5,6 +5,7 @@ the PyTorch reference model (training/paraformer_train) against the Rust engine
     pip install . torch safetensors          # the module, and the reference's needs
     python benches/compare.py                # 2 threads, 2048 keypoints, all models
     python benches/compare.py --keypoints 512 1024 2048 --threads 2 --json benches/results.json
+    python benches/compare.py --shipped --threads 2    # shipped matchers vs LighterGlue, fp32/bf16
 
 Prints, per model: PyTorch and Rust latency and their ratio, the Rust network part's
 FLOP rate (2·MACs / time, everything but Sinkhorn) against numpy's GEMM rate, the
@@ -31,7 +32,17 @@ def main() -> None:
     ap.add_argument("--models", nargs="+", default=["superglue", "paraformer", "paraformer_u"])
     ap.add_argument("--repeat", type=int, default=3, help="timed runs per case (the best is kept)")
     ap.add_argument("--json", help="also write the results to this file")
+    ap.add_argument("--shipped", action="store_true",
+                    help="instead: the shipped matchers (fp32, bf16) against LighterGlue on real pairs "
+                         "(runs benches/shipped_compare.py with --threads and --json)")
     args = ap.parse_args()
+    if args.shipped:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        import shipped_compare
+
+        sys.argv = [sys.argv[0], "--threads", str(args.threads)] + (["--json", args.json] if args.json else [])
+        shipped_compare.main()
+        return
     # Thread counts must be fixed before the libraries start their pools.
     for var in ("RAYON_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(args.threads)
