@@ -38,7 +38,7 @@ use rayon::prelude::*;
 
 use crate::attention::record;
 use crate::error::Result;
-use crate::kernels::{internal, Matrix, SharedMut, View};
+use crate::kernels::{internal, to_bf16, Matrix, SharedMut, View};
 
 /// Query rows per strip: the unit of the score buffer (`STRIP × N` floats).
 const STRIP: usize = 16;
@@ -79,61 +79,55 @@ struct Packed {
     k16: Vec<u16>,
 }
 
-fn bf16_bits(x: f32) -> u16 {
-    // Round to nearest even, as `vcvtne2ps2bf16` does (inputs are finite here).
-    let b = x.to_bits();
-    ((b + 0x7FFF + ((b >> 16) & 1)) >> 16) as u16
-}
-
 fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
     let (m, n, c) = (q.rows, k.rows, q.cols);
     let d = c / heads;
     let (mp, np) = (m.div_ceil(STRIP) * STRIP, n.div_ceil(32) * 32);
     let factor = std::f32::consts::LOG2_E / (d as f32).sqrt();
     let mut p = Packed { heads, d, m, n, mp, np, ld: np + 16, q: Vec::new(), k: Vec::new(), q16: Vec::new(), k16: Vec::new() };
-    // Queries: one strip of STRIP rows of one head per task; keys: one 16-column panel.
-    let strips = mp / STRIP;
-    let panels = np / 16;
     if bf16 {
-        p.q16 = vec![0; heads * mp * d];
-        p.k16 = vec![0; heads * np * d];
-        p.q16.par_chunks_mut(STRIP * d).enumerate().for_each(|(t, o)| {
-            let (h, i0) = (t / strips, (t % strips) * STRIP);
-            for i in i0..(i0 + STRIP).min(m) {
-                for (x, &v) in o[(i - i0) * d..(i - i0 + 1) * d].iter_mut().zip(&q.row(i)[h * d..(h + 1) * d]) {
-                    *x = bf16_bits(v * factor);
-                }
-            }
-        });
-        p.k16.par_chunks_mut(16 * d).enumerate().for_each(|(t, o)| {
-            let (h, j0) = (t / panels, (t % panels) * 16);
-            for j in j0..(j0 + 16).min(n) {
-                for (c, &v) in k.row(j)[h * d..(h + 1) * d].iter().enumerate() {
-                    o[(c / 2) * 32 + (j - j0) * 2 + c % 2] = bf16_bits(v);
-                }
-            }
-        });
+        (p.q16, p.k16) = pack_as(q, k, heads, mp, np, |v| to_bf16(v * factor), to_bf16, |lane, c| (c / 2) * 32 + lane * 2 + c % 2);
     } else {
-        p.q = vec![0.0; heads * mp * d];
-        p.k = vec![0.0; heads * np * d];
-        p.q.par_chunks_mut(STRIP * d).enumerate().for_each(|(t, o)| {
-            let (h, i0) = (t / strips, (t % strips) * STRIP);
-            for i in i0..(i0 + STRIP).min(m) {
-                for (x, &v) in o[(i - i0) * d..(i - i0 + 1) * d].iter_mut().zip(&q.row(i)[h * d..(h + 1) * d]) {
-                    *x = v * factor;
-                }
-            }
-        });
-        p.k.par_chunks_mut(16 * d).enumerate().for_each(|(t, o)| {
-            let (h, j0) = (t / panels, (t % panels) * 16);
-            for j in j0..(j0 + 16).min(n) {
-                for (c, &v) in k.row(j)[h * d..(h + 1) * d].iter().enumerate() {
-                    o[c * 16 + (j - j0)] = v;
-                }
-            }
-        });
+        (p.q, p.k) = pack_as(q, k, heads, mp, np, |v| v * factor, |v| v, |lane, c| c * 16 + lane);
     }
     p
+}
+
+/// Queries `[H][mp][d]` (`qv` of each value) and keys `[H][np/16][16·d]` (`kv` of each value
+/// at `at(lane, channel)` of its panel), in parallel: a strip of queries or a panel of
+/// keys per task.
+#[allow(clippy::too_many_arguments)]
+fn pack_as<T: Copy + Default + Send + Sync>(
+    q: View,
+    k: View,
+    heads: usize,
+    mp: usize,
+    np: usize,
+    qv: impl Fn(f32) -> T + Sync,
+    kv: impl Fn(f32) -> T + Sync,
+    at: impl Fn(usize, usize) -> usize + Sync,
+) -> (Vec<T>, Vec<T>) {
+    let (m, n, d) = (q.rows, k.rows, q.cols / heads);
+    let (strips, panels) = (mp / STRIP, np / 16);
+    let mut qp = vec![T::default(); heads * mp * d];
+    let mut kp = vec![T::default(); heads * np * d];
+    qp.par_chunks_mut(STRIP * d).enumerate().for_each(|(t, o)| {
+        let (h, i0) = (t / strips, (t % strips) * STRIP);
+        for i in i0..(i0 + STRIP).min(m) {
+            for (x, &v) in o[(i - i0) * d..(i - i0 + 1) * d].iter_mut().zip(&q.row(i)[h * d..(h + 1) * d]) {
+                *x = qv(v);
+            }
+        }
+    });
+    kp.par_chunks_mut(16 * d).enumerate().for_each(|(t, o)| {
+        let (h, j0) = (t / panels, (t % panels) * 16);
+        for j in j0..(j0 + 16).min(n) {
+            for (c, &v) in k.row(j)[h * d..(h + 1) * d].iter().enumerate() {
+                o[at(j - j0, c)] = kv(v);
+            }
+        }
+    });
+    (qp, kp)
 }
 
 /// Values of one head as bf16, `[ceil(rows/2)][d][2]` (pairs of rows interleaved), or an
@@ -147,7 +141,7 @@ fn pack_values_bf16(v: View, heads: usize) -> Vec<u16> {
         let (h, pair) = (t / half, t % half);
         for j in 2 * pair..(2 * pair + 2).min(n) {
             for (c, &x) in v.row(j)[h * d..(h + 1) * d].iter().enumerate() {
-                o[c * 2 + j % 2] = bf16_bits(x);
+                o[c * 2 + j % 2] = to_bf16(x);
             }
         }
     });

@@ -284,7 +284,7 @@ impl Config {
             return err(format!("match_threshold must be finite, got {}", self.match_threshold));
         }
         let check_width = |name: &str, c: usize| -> Result<()> {
-            if c == 0 || c % self.num_heads != 0 {
+            if c == 0 || !c.is_multiple_of(self.num_heads) {
                 return Err(Error::Config(format!(
                     "{name} = {c} must be a positive multiple of num_heads = {}",
                     self.num_heads

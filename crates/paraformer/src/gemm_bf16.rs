@@ -18,16 +18,12 @@ mod x86 {
     use rayon::prelude::*;
 
     use crate::error::Result;
-    use crate::kernels::{internal, SharedMut, View};
+    use crate::kernels::{internal, to_bf16, SharedMut, View};
 
     /// Rows per register tile, and per parallel task.
     const TILE: usize = 8;
     const BLOCK: usize = 64;
 
-    fn bf16_bits(x: f32) -> u16 {
-        let b = x.to_bits();
-        ((b + 0x7FFF + ((b >> 16) & 1)) >> 16) as u16
-    }
 
     /// `wt` `[k, n]` row-major → `[ceil(k/2)][n_pad][2]` bf16, `n_pad` = `n` rounded up to 16.
     pub fn pack_weights(wt: &[f32], k: usize, n: usize) -> Vec<u16> {
@@ -35,7 +31,7 @@ mod x86 {
         let mut out = vec![0u16; k.div_ceil(2) * np * 2];
         for i in 0..k {
             for (j, &w) in wt[i * n..(i + 1) * n].iter().enumerate() {
-                out[(i / 2) * np * 2 + j * 2 + i % 2] = bf16_bits(w);
+                out[(i / 2) * np * 2 + j * 2 + i % 2] = to_bf16(w);
             }
         }
         out
@@ -49,7 +45,7 @@ mod x86 {
         let m = x.rows;
         let np = n.div_ceil(16) * 16;
         let k2 = k.div_ceil(2);
-        if x.cols != k || c0 % 16 != 0 || c1 > n || c0 > c1 || wp.len() != k2 * np * 2 {
+        if x.cols != k || !c0.is_multiple_of(16) || c1 > n || c0 > c1 || wp.len() != k2 * np * 2 {
             return Err(internal(format!("bf16 gemm x {m}×{} with W {k}×{n} columns {c0}..{c1}", x.cols)));
         }
         if m == 0 || c0 == c1 {
@@ -67,7 +63,7 @@ mod x86 {
             for r in r0..r1 {
                 let dst_row = &mut a[(r - r0) * k2 * 2..];
                 for (t, &v) in x.row(r).iter().enumerate() {
-                    dst_row[t] = bf16_bits(v);
+                    dst_row[t] = to_bf16(v);
                 }
             }
             // SAFETY: AVX-512 BF16 was checked by the caller; block b alone writes rows

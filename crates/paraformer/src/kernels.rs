@@ -454,9 +454,9 @@ multiversion! {
     }
 }
 
-/// f32 → bf16, round to nearest even (finite inputs).
+/// f32 → bf16, round to nearest even (finite inputs), as `vcvtne2ps2bf16` does.
 #[inline(always)]
-fn to_bf16(x: f32) -> u16 {
+pub(crate) fn to_bf16(x: f32) -> u16 {
     let b = x.to_bits();
     ((b + 0x7FFF + ((b >> 16) & 1)) >> 16) as u16
 }

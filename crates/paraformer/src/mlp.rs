@@ -87,7 +87,7 @@ impl Linear {
     /// `dst += x·Wᵀ` for output columns `c0..c1`.
     fn accumulate(&self, ctx: &Ctx, x: View, c0: usize, c1: usize, dst: &mut [f32], dst_stride: usize) -> Result<()> {
         #[cfg(target_arch = "x86_64")]
-        if self.bf16 && ctx.precision == Precision::Bf16 && c0 % 16 == 0 && crate::gemm_bf16::available() {
+        if self.bf16 && ctx.precision == Precision::Bf16 && c0.is_multiple_of(16) && crate::gemm_bf16::available() {
             ctx.add_macs((x.rows * (c1 - c0) * self.in_dim) as u64);
             let wp = self.packed.get_or_init(|| crate::gemm_bf16::pack_weights(&self.wt, self.in_dim, self.out_dim));
             return crate::gemm_bf16::gemm_acc(dst, dst_stride, x, wp, self.in_dim, self.out_dim, c0, c1);

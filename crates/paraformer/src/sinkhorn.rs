@@ -101,11 +101,8 @@ unsafe fn sweep_bf16_pairs(k: &[u16], a: &mut [f32], mu: &[f32], b: &[f32], acc:
             0.0
         };
         let a0 = a[2 * p];
-        let to_bf16 = |x: f32| {
-            let u = x.to_bits();
-            (u + 0x7FFF + ((u >> 16) & 1)) >> 16
-        };
-        let ap = std::mem::transmute::<__m512i, __m512bh>(_mm512_set1_epi32((to_bf16(a0) | (to_bf16(a1) << 16)) as i32));
+        let a_pair = crate::kernels::to_bf16(a0) as u32 | (crate::kernels::to_bf16(a1) as u32) << 16;
+        let ap = std::mem::transmute::<__m512i, __m512bh>(_mm512_set1_epi32(a_pair as i32));
         for j in (0..full).step_by(16) {
             let x = std::mem::transmute::<__m512i, __m512bh>(_mm512_loadu_si512(kp.add(2 * j) as *const _));
             let y = acc.as_mut_ptr().add(j);
