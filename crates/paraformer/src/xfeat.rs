@@ -211,18 +211,28 @@ impl Conv {
         let (ho, wo) = ((x.h + 2 * pad - self.k) / self.stride + 1, (x.w + 2 * pad - self.k) / self.stride + 1);
         let p = ho * wo;
         let kk = self.cin * self.k * self.k;
-        let im2col;
-        let cols: &[f32] = if self.k == 1 && self.stride == 1 {
-            &x.data
-        } else {
-            im2col = unfold(x, self.k, self.stride, ho, wo);
-            &im2col
-        };
         // Output rows start from the bias; the GEMM accumulates onto them.
-        let mut out: Vec<f32> = self.bias.iter().flat_map(|&b| std::iter::repeat_n(b, p)).collect();
+        let mut out = vec![0.0f32; self.cout * p];
+        out.par_chunks_mut(p.max(1)).zip(&self.bias).for_each(|(row, &b)| row.fill(b));
         let a = View { data: &self.weight, rows: self.cout, cols: kk, stride: kk };
-        let b = View { data: cols, rows: kk, cols: p, stride: p };
-        ctx.gemm(&mut out, p, a, false, b, false, 1.0, true, true)?;
+        if self.k == 1 && self.stride == 1 {
+            let b = View { data: &x.data, rows: kk, cols: p, stride: p };
+            ctx.gemm(&mut out, p, a, false, b, false, 1.0, true, true)?;
+        } else {
+            // The im2col buffer is reused across layers and calls on this thread: fresh
+            // allocations of this size cost page faults on every touch.
+            IM2COL.with(|buf| -> Result<()> {
+                let mut buf = buf.borrow_mut();
+                unfold_into(x, self.k, self.stride, ho, wo, &mut buf);
+                let b = View { data: &buf, rows: kk, cols: p, stride: p };
+                let r = ctx.gemm(&mut out, p, a, false, b, false, 1.0, true, true);
+                // Keep at most 64 MB between calls (a 640×480 image needs 44 MB).
+                if buf.capacity() > 16 << 20 {
+                    *buf = Vec::new();
+                }
+                r
+            })?;
+        }
         if self.relu {
             out.par_chunks_mut(p.max(1)).for_each(relu);
         }
@@ -232,27 +242,37 @@ impl Conv {
 
 /// im2col for a zero-padded `k × k` convolution: row `(ci·k + ky)·k + kx` holds the input
 /// value under that tap for every output pixel.
-fn unfold(x: &Planes, k: usize, stride: usize, ho: usize, wo: usize) -> Vec<f32> {
+thread_local! {
+    /// The im2col scratch of [`Conv::forward`] on this thread.
+    static IM2COL: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// im2col into `cols` (resized; every value written, padding taps as zeros).
+fn unfold_into(x: &Planes, k: usize, stride: usize, ho: usize, wo: usize, cols: &mut Vec<f32>) {
     let pad = (k / 2) as isize;
     let p = ho * wo;
-    let mut cols = vec![0.0f32; x.c * k * k * p];
-    cols.par_chunks_mut(p).enumerate().for_each(|(row, dst)| {
+    cols.resize(x.c * k * k * p, 0.0);
+    cols[..x.c * k * k * p].par_chunks_mut(p).enumerate().for_each(|(row, dst)| {
         let (ci, ky, kx) = (row / (k * k), (row / k) % k, row % k);
         let plane = &x.data[ci * x.h * x.w..(ci + 1) * x.h * x.w];
         for oy in 0..ho {
             let iy = (oy * stride) as isize + ky as isize - pad;
+            let line = &mut dst[oy * wo..(oy + 1) * wo];
             if iy < 0 || iy >= x.h as isize {
+                line.fill(0.0);
                 continue;
             }
             let src = &plane[iy as usize * x.w..(iy as usize + 1) * x.w];
-            let line = &mut dst[oy * wo..(oy + 1) * wo];
             // Output columns whose tap ix = ox·stride + kx − pad lies inside the row.
             let off = kx as isize - pad;
-            let first = ((-off).max(0) as usize).div_ceil(stride);
+            let first = ((-off).max(0) as usize).div_ceil(stride).min(wo);
             let end = ((x.w as isize - off).max(0) as usize).div_ceil(stride).min(wo);
+            line[..first].fill(0.0);
             if first >= end {
+                line[first..].fill(0.0);
                 continue;
             }
+            line[end..].fill(0.0);
             let start = (first * stride) as isize + off;
             if stride == 1 {
                 line[first..end].copy_from_slice(&src[start as usize..start as usize + end - first]);
@@ -263,7 +283,6 @@ fn unfold(x: &Planes, k: usize, stride: usize, ho: usize, wo: usize) -> Vec<f32>
             }
         }
     });
-    cols
 }
 
 fn run(ctx: &Ctx, layers: &[Conv], x: &Planes) -> Result<Planes> {
