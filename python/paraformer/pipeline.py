@@ -43,6 +43,8 @@ def load_matcher(matcher: Any, precision: str = "fp32") -> Any:
     file (loaded in ``precision``) or a ``paraformer.Matcher`` (returned as is)."""
     from . import Matcher, pretrained_names
 
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision: expected \"fp32\" or \"bf16\", got {precision!r}")
     if isinstance(matcher, (Matcher, Baseline)):
         return matcher
     if not isinstance(matcher, (str, os.PathLike)):

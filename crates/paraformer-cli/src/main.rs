@@ -19,13 +19,17 @@ struct Cli {
     memory_limit: Option<u64>,
     /// Arithmetic of the learned matchers' attention: fp32 (default) or bf16 (bf16
     /// operands, fp32 sums; needs AVX-512 BF16, elsewhere runs as fp32).
-    #[arg(long, global = true, default_value = "fp32", value_parser = ["fp32", "bf16"])]
-    precision: String,
+    #[arg(long, global = true, default_value = "fp32", value_parser = parse_precision)]
+    precision: paraformer::Precision,
     #[command(subcommand)]
     command: Command,
 }
 
 /// `8G`, `512M`, `64K` or plain bytes.
+fn parse_precision(s: &str) -> Result<paraformer::Precision, String> {
+    paraformer::Precision::parse(s).map_err(|e| e.to_string())
+}
+
 fn parse_bytes(s: &str) -> Result<u64, String> {
     let t = s.trim();
     let (num, mult) = match t.char_indices().last() {
@@ -243,7 +247,7 @@ fn matcher_spec(name: &str) -> paraformer::Result<paraformer::eval::harness::Mat
 }
 
 fn run(cli: Cli) -> paraformer::Result<()> {
-    let _ = PRECISION.set(paraformer::Precision::parse(&cli.precision)?);
+    let _ = PRECISION.set(cli.precision);
     if cli.memory_limit.is_some() {
         paraformer::memory::set_memory_limit(cli.memory_limit);
     }

@@ -98,6 +98,11 @@ fn output_dict<'py>(py: Python<'py>, out: &MatchOutput) -> PyResult<Bound<'py, P
     Ok(d)
 }
 
+/// The `precision` keyword: "fp32" or "bf16", else the error that names it.
+fn precision_arg(precision: &str) -> PyResult<Precision> {
+    Precision::parse(precision).map_err(to_py_err)
+}
+
 /// A loaded matcher (the Rust core); use `paraformer.Matcher`, which wraps it.
 #[pyclass(frozen, name = "_Matcher", module = "paraformer._paraformer")]
 struct PyMatcher {
@@ -115,7 +120,7 @@ impl PyMatcher {
     #[staticmethod]
     #[pyo3(signature = (path, /, precision = "fp32"))]
     fn from_file(py: Python<'_>, path: PathBuf, precision: &str) -> PyResult<Self> {
-        let p = Precision::parse(precision).map_err(to_py_err)?;
+        let p = precision_arg(precision)?;
         let m = py.detach(|| Matcher::from_file(&path)).map_err(to_py_err)?;
         Ok(Self { inner: Arc::new(m.with_precision(p)) })
     }
@@ -129,7 +134,7 @@ impl PyMatcher {
     #[staticmethod]
     #[pyo3(signature = (name, /, precision = "fp32"))]
     fn pretrained(py: Python<'_>, name: &str, precision: &str) -> PyResult<Self> {
-        let p = Precision::parse(precision).map_err(to_py_err)?;
+        let p = precision_arg(precision)?;
         let m = py.detach(|| Matcher::pretrained(name)).map_err(to_py_err)?;
         Ok(Self { inner: Arc::new(m.with_precision(p)) })
     }
@@ -143,7 +148,7 @@ impl PyMatcher {
     #[staticmethod]
     #[pyo3(signature = (data, /, precision = "fp32"))]
     fn from_bytes(py: Python<'_>, data: PyBackedBytes, precision: &str) -> PyResult<Self> {
-        let p = Precision::parse(precision).map_err(to_py_err)?;
+        let p = precision_arg(precision)?;
         let m = py.detach(|| Matcher::from_bytes(&data)).map_err(to_py_err)?;
         Ok(Self { inner: Arc::new(m.with_precision(p)) })
     }
@@ -158,7 +163,7 @@ impl PyMatcher {
     #[staticmethod]
     #[pyo3(signature = (config_json, weights, /, precision = "fp32"))]
     fn with_config(py: Python<'_>, config_json: &str, weights: WeightsArg, precision: &str) -> PyResult<Self> {
-        let p = Precision::parse(precision).map_err(to_py_err)?;
+        let p = precision_arg(precision)?;
         let config = Config::from_json(config_json).map_err(|e| PyValueError::new_err(format!("config: {e}")))?;
         let m = py
             .detach(|| {

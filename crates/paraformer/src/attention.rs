@@ -18,7 +18,7 @@ use crate::mlp::Linear;
 /// Query rows per block: a `BLOCK × N` score block stays in L2 for N ≲ 4096.
 const BLOCK: usize = 64;
 
-pub(crate) fn record(slot: &Mutex<Option<crate::Error>>, r: Result<()>) {
+fn record(slot: &Mutex<Option<crate::Error>>, r: Result<()>) {
     if let (Err(e), Ok(mut s)) = (r, slot.lock()) {
         s.get_or_insert(e);
     }
@@ -38,7 +38,7 @@ fn take(slot: Mutex<Option<crate::Error>>) -> Result<()> {
 fn fused(ctx: &Ctx, d: usize, n: usize) -> Option<bool> {
     let bf16 = ctx.precision == Precision::Bf16;
     let worth = d <= 32 || n <= 4096 || bf16;
-    (cfg!(target_arch = "x86_64") && ctx.fused && worth && crate::attention_fused::available(d)).then_some(bf16)
+    (ctx.fused && worth && crate::attention_fused::available(d)).then_some(bf16)
 }
 
 /// `softmax(q·kᵀ/√d)·v` for every head: `q` `[M, C]`, `k`, `v` `[N, C]` → `[M, C]`.
@@ -48,7 +48,6 @@ pub fn attention(ctx: &Ctx, q: View, k: View, v: View, heads: usize, col_sums: b
     let d = c / heads;
     if let Some(bf16) = fused(ctx, d, n) {
         ctx.add_macs(2 * (m * n * c) as u64);
-        #[cfg(target_arch = "x86_64")]
         return crate::attention_fused::attention(q, k, v, heads, col_sums, bf16);
     }
     let scale = 1.0 / (d as f32).sqrt();
@@ -103,7 +102,6 @@ pub fn cross_attention_shared(ctx: &Ctx, qx: View, ky: View, vx: View, vy: View,
     let d = c / heads;
     if let Some(bf16) = fused(ctx, d, n.max(m)) {
         ctx.add_macs(3 * (m * n * c) as u64);
-        #[cfg(target_arch = "x86_64")]
         return crate::attention_fused::cross_attention_shared(qx, ky, vx, vy, heads, bf16);
     }
     let scale = 1.0 / (d as f32).sqrt();
@@ -177,8 +175,8 @@ pub struct Projections {
 
 impl Projections {
     pub fn new(c: usize, vb: VarBuilder) -> CResult<Self> {
-        let p = (Linear::new(c, c, vb.pp(0))?.with_bf16(), Linear::new(c, c, vb.pp(1))?.with_bf16(), Linear::new(c, c, vb.pp(2))?.with_bf16());
-        Ok(Self { qkv: Linear::concat(&[&p.0, &p.1, &p.2]), dim: c })
+        let p = (Linear::new(c, c, vb.pp(0))?, Linear::new(c, c, vb.pp(1))?, Linear::new(c, c, vb.pp(2))?);
+        Ok(Self { qkv: Linear::concat(&[&p.0, &p.1, &p.2]).with_bf16(), dim: c })
     }
 
     /// `[q | k | v]` of `x` `[K, 3C]`.

@@ -38,14 +38,14 @@ mod x86 {
     }
 
     /// `dst[r][..c1−c0] += x[r]·W[:, c0..c1]` for every row of `x` (`[m, k]`), with `wp` from
-    /// [`pack_weights`] of a `[k, n]` matrix; `c0` a multiple of 16. Caller checks
-    /// [`super::available`].
+    /// [`pack_weights`] of a `[k, n]` matrix; `c0` a multiple of 16. An error where this CPU
+    /// lacks AVX-512 BF16 ([`super::available`]).
     #[allow(clippy::too_many_arguments)]
     pub fn gemm_acc(dst: &mut [f32], dst_stride: usize, x: View, wp: &[u16], k: usize, n: usize, c0: usize, c1: usize) -> Result<()> {
         let m = x.rows;
         let np = n.div_ceil(16) * 16;
         let k2 = k.div_ceil(2);
-        if x.cols != k || !c0.is_multiple_of(16) || c1 > n || c0 > c1 || wp.len() != k2 * np * 2 {
+        if x.cols != k || !c0.is_multiple_of(16) || c1 > n || c0 > c1 || wp.len() != k2 * np * 2 || !super::available() {
             return Err(internal(format!("bf16 gemm x {m}×{} with W {k}×{n} columns {c0}..{c1}", x.cols)));
         }
         if m == 0 || c0 == c1 {
@@ -66,7 +66,7 @@ mod x86 {
                     dst_row[t] = to_bf16(v);
                 }
             }
-            // SAFETY: AVX-512 BF16 was checked by the caller; block b alone writes rows
+            // SAFETY: AVX-512 BF16 was checked on entry; block b alone writes rows
             // r0..r1 of `dst`, inside the bounds checked above.
             unsafe { block(&a, r1 - r0, k2, wp, np, c0, c1, out.at(r0 * dst_stride), dst_stride) };
         });

@@ -61,7 +61,8 @@ impl<'a> View<'a> {
         View { data: &self.data[start..], rows: r1 - r0, cols: self.cols, stride: self.stride }
     }
 
-    fn fits(&self) -> bool {
+    /// Whether every element of the view lies inside `data`.
+    pub(crate) fn fits(&self) -> bool {
         self.rows == 0 || self.cols == 0 || (self.rows - 1) * self.stride + self.cols <= self.data.len()
     }
 
@@ -100,16 +101,18 @@ impl SharedMut {
     }
 }
 
-/// Arithmetic of the attention products.
+/// Arithmetic of the matcher's heavy products.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
 pub enum Precision {
     /// fp32 everywhere (the default; SPEC's numbers).
     #[default]
     Fp32,
-    /// bf16 operands with fp32 accumulation for the attention products at head widths
-    /// 16, 32 and 64, where the CPU has AVX-512 BF16 (see [`Precision::effective`]);
-    /// softmax, sums, the other layers and the attention whose column sums choose the
-    /// keypoints of ParaFormer-U's pooling stay fp32.
+    /// bf16 operands with fp32 accumulation, where the CPU has AVX-512 BF16 (see
+    /// [`Precision::effective`]): the attention products at head widths 16, 32 and 64,
+    /// the attention layers' Linear layers, Wave-PE's descriptor and wave MLPs, and
+    /// Sinkhorn's kernel. Softmax, maxima and sums, LayerNorm, the position MLPs, the
+    /// final projection, the score matrix and every layer whose attention column sums
+    /// choose ParaFormer-U's pooled keypoints stay fp32.
     Bf16,
 }
 
@@ -145,7 +148,7 @@ impl Precision {
 #[derive(Debug)]
 pub struct Ctx {
     pub threads: usize,
-    /// Attention arithmetic (already [`Precision::effective`]).
+    /// Arithmetic of the heavy products (already [`Precision::effective`]).
     pub precision: Precision,
     /// Use the fused narrow-head attention kernels where they apply (off: the general path,
     /// the reference the fused kernels are tested against).

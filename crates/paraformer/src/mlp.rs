@@ -125,15 +125,13 @@ pub struct Mlp {
 }
 
 impl Mlp {
+    pub const BN_EPS: f32 = 1e-5;
+
     /// This MLP with every Linear allowed to run in bf16 (see [`Linear::with_bf16`]).
     pub fn with_bf16(mut self) -> Self {
         self.linears = self.linears.into_iter().map(Linear::with_bf16).collect();
         self
     }
-}
-
-impl Mlp {
-    pub const BN_EPS: f32 = 1e-5;
 
     pub fn new(channels: &[usize], vb: VarBuilder) -> CResult<Self> {
         let n = channels.len().saturating_sub(1);

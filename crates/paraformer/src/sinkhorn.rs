@@ -56,14 +56,19 @@ impl KernelStore for u16 {
             // SAFETY: AVX-512 BF16 checked just above; slices sized by `len`.
             return unsafe { sweep_bf16_pairs(k, a, mu, b, acc, c) };
         }
-        for (p, pair) in k.chunks_exact(2 * c).enumerate() {
-            for h in 0..2.min(a.len() - 2 * p) {
-                let i = 2 * p + h;
-                let kv = |j: usize| f32::from_bits((pair[2 * j + h] as u32) << 16);
-                a[i] = mu[i] / (0..c).map(|j| kv(j) * b[j]).sum::<f32>();
-                for (j, y) in acc.iter_mut().enumerate() {
-                    *y += a[i] * kv(j);
-                }
+        sweep_pairs_scalar(k, a, mu, b, acc, c)
+    }
+}
+
+/// [`KernelStore::sweep`] for bf16 pairs of rows on CPUs without AVX-512 BF16.
+fn sweep_pairs_scalar(k: &[u16], a: &mut [f32], mu: &[f32], b: &[f32], acc: &mut [f32], c: usize) {
+    for (p, pair) in k.chunks_exact(2 * c).enumerate() {
+        for h in 0..2.min(a.len() - 2 * p) {
+            let i = 2 * p + h;
+            let kv = |j: usize| f32::from_bits((pair[2 * j + h] as u32) << 16);
+            a[i] = mu[i] / (0..c).map(|j| kv(j) * b[j]).sum::<f32>();
+            for (j, y) in acc.iter_mut().enumerate() {
+                *y += a[i] * kv(j);
             }
         }
     }
@@ -410,5 +415,33 @@ fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32, ite
         let worst = want.data.iter().zip(&z.data).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         // K's entries carry 2^-9 relative error; the potentials absorb it to ~1e-2 in the log.
         assert!(worst < 2e-2, "max |Δ log P| = {worst}");
+    }
+
+    /// The AVX-512 BF16 sweep against the portable one (odd rows, a column tail).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn bf16_sweep_matches_the_portable_sweep() {
+        if !crate::gemm_bf16::available() {
+            eprintln!("skipped: no AVX-512 BF16 here");
+            return;
+        }
+        let (rows, c) = (7, 37);
+        let z: Vec<f32> = scores(rows, c).iter().map(|v| v * 0.3).collect();
+        let (f, g) = (vec![0.0f32; rows], vec![0.0f32; c]);
+        let mut k = vec![0u16; <u16 as KernelStore>::len(rows, c)];
+        <u16 as KernelStore>::fill(&z, &f, &g, &mut k, c);
+        let (mu, b): (Vec<f32>, Vec<f32>) = ((0..rows).map(|i| 0.1 + i as f32 * 0.01).collect(), (0..c).map(|j| 1.0 + j as f32 * 0.02).collect());
+        let (mut a0, mut acc0) = (vec![0.0f32; rows], vec![0.0f32; c]);
+        let (mut a1, mut acc1) = (vec![0.0f32; rows], vec![0.0f32; c]);
+        sweep_pairs_scalar(&k, &mut a0, &mu, &b, &mut acc0, c);
+        // SAFETY: AVX-512 BF16 checked above; slices sized by `len`.
+        unsafe { sweep_bf16_pairs(&k, &mut a1, &mu, &b, &mut acc1, c) };
+        for (x, y) in a0.iter().zip(&a1) {
+            assert!((x - y).abs() <= 1e-5 * x.abs(), "a: {x} vs {y}");
+        }
+        // The SIMD sweep rounds each a_i to bf16 for Kᵀa: 2^-9 relative.
+        for (x, y) in acc0.iter().zip(&acc1) {
+            assert!((x - y).abs() <= 4e-3 * x.abs(), "Kᵀa: {x} vs {y}");
+        }
     }
 }

@@ -240,19 +240,19 @@ impl Conv {
     }
 }
 
-/// im2col for a zero-padded `k × k` convolution: row `(ci·k + ky)·k + kx` holds the input
-/// value under that tap for every output pixel.
 thread_local! {
     /// The im2col scratch of [`Conv::forward`] on this thread.
     static IM2COL: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
-/// im2col into `cols` (resized; every value written, padding taps as zeros).
+/// im2col for a zero-padded `k × k` convolution into `cols` (resized; every value
+/// written, padding taps as zeros): row `(ci·k + ky)·k + kx` holds the input value under
+/// that tap for every output pixel.
 fn unfold_into(x: &Planes, k: usize, stride: usize, ho: usize, wo: usize, cols: &mut Vec<f32>) {
     let pad = (k / 2) as isize;
     let p = ho * wo;
     cols.resize(x.c * k * k * p, 0.0);
-    cols[..x.c * k * k * p].par_chunks_mut(p).enumerate().for_each(|(row, dst)| {
+    cols.par_chunks_mut(p).enumerate().for_each(|(row, dst)| {
         let (ci, ky, kx) = (row / (k * k), (row / k) % k, row % k);
         let plane = &x.data[ci * x.h * x.w..(ci + 1) * x.h * x.w];
         for oy in 0..ho {
