@@ -50,6 +50,18 @@ def test_unknown_projections_are_ignored_not_unmatched():
     assert m1.tolist() == [[0, -2]]
 
 
+def test_unmatched_band_is_per_pair_and_only_widens():
+    """Projections 1, 5 and 20 px off: positive, then unmatched (evaluation rule) or ignored
+    (band to 8 px), then unmatched; a band below the threshold changes nothing."""
+    k = torch.tensor([[[0.0, 0.0], [100.0, 0.0], [200.0, 0.0]]])
+    off = torch.tensor([[[1.0, 0.0], [5.0, 0.0], [20.0, 0.0]]])
+    k2, p0, p1 = torch.cat([k, k]), torch.cat([k + off, k + off]), torch.cat([k - off, k - off])
+    m0, m1 = ground_truth(k2, k2, p0, p1, 3.0, torch.tensor([8.0, 3.0]))
+    assert m0.tolist() == [[0, -2, -1], [0, -1, -1]]
+    assert m1.tolist() == m0.tolist()
+    assert ground_truth(k, k, k + off, k - off, 3.0, 1.0)[0].tolist() == [[0, -1, -1]]
+
+
 def test_rgbd_projection_of_a_plane():
     """A fronto-parallel wall 2 m away seen by two cameras 0.2 m apart: projections are the
     known disparity shift; a box in front of the wall occludes what lies behind it."""

@@ -185,12 +185,17 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=5e-4)
     ap.add_argument("--warmup", type=int, default=4000, help="warm-up pairs")
     ap.add_argument("--weight-decay", type=float, default=0.01)
+    ap.add_argument("--ema", type=float, default=0.999,
+                    help="per-step decay of the weights' moving average that is validated and exported (0: off)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--shard-size", type=int, default=128)
     ap.add_argument("--max-pending", type=int, default=24)
     ap.add_argument("--reuse", type=float, default=1.0, help="draws per pair before its shard is retired")
     ap.add_argument("--real-fraction", type=float, default=0.2)
+    ap.add_argument("--real-unmatched-from", type=float, default=8.0,
+                    help="training labels of real pairs: unmatched only from this distance (px), ignored "
+                         "between it and 3 px (pose/depth noise); validation keeps the evaluation rule")
     ap.add_argument("--gen-threads", type=int, default=1)
     ap.add_argument("--gen-nice", type=int, default=5)
     ap.add_argument("--ckpt-minutes", type=float, default=10.0)
@@ -218,11 +223,16 @@ def main() -> None:
     torch.manual_seed(args.seed)
     cfg = preset(args.preset, args.dim, args.depth, args.heads) | {"sinkhorn_iterations": args.sinkhorn}
     model = Matcher(cfg).train()
+    # The exported weights: an exponential moving average of the trained ones, which smooths
+    # the noise of small batches (batch 2-8) at a constant learning rate.
+    ema = Matcher(cfg).eval()
+    ema.load_state_dict(model.state_dict())
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     pairs_seen, steps, cursor, spent, best = 0, 0, 0, 0.0, -1.0
     rng = np.random.default_rng([args.seed, 7])
     if state is not None:
         model.load_state_dict(state["model"])
+        ema.load_state_dict(state.get("ema", state["model"]))
         opt.load_state_dict(state["opt"])
         pairs_seen, steps, cursor = state["pairs"], state["steps"], state["cursor"]
         spent, best = state["train_s"], state["best"]
@@ -230,8 +240,8 @@ def main() -> None:
         print(f"resumed at {pairs_seen} pairs, step {steps}, stream shard {cursor}", flush=True)
     holdout = ensure_holdout(args.val_pairs)
     if args.validate_only:
-        v = validate(model, holdout, 512, args.val_threshold, auc=False)
-        v |= validate(model, holdout, 2048, args.val_threshold, auc=True)
+        v = validate(ema, holdout, 512, args.val_threshold, auc=False)
+        v |= validate(ema, holdout, 2048, args.val_threshold, auc=True)
         rec = {"pairs": pairs_seen, "steps": steps, "validate_only": True} | v
         with open(os.path.join(args.run, "log.jsonl"), "a") as f:
             f.write(json.dumps(rec) + "\n")
@@ -258,7 +268,7 @@ def main() -> None:
     kinds = {k: 0 for k, _, _ in schedule}
 
     def save() -> None:
-        blob = {"model": model.state_dict(), "opt": opt.state_dict(), "pairs": pairs_seen, "steps": steps,
+        blob = {"model": model.state_dict(), "ema": ema.state_dict(), "opt": opt.state_dict(), "pairs": pairs_seen, "steps": steps,
                 "cursor": reader.low_water(), "train_s": spent + time.time() - t_mark, "best": best,
                 "rng": rng.bit_generator.state, "args": vars(args)}
         torch.save(blob, ckpt + ".tmp")
@@ -270,7 +280,7 @@ def main() -> None:
                 gen = start_generator(args, work, reader.low_water())
             k, bsz, _ = schedule[int(rng.choice(len(schedule), p=[p for _, _, p in schedule]))]
             items = reader.draw(bsz)
-            bt = stream.collate(items, k, list(rng.random(bsz) < 0.5))
+            bt = stream.collate(items, k, list(rng.random(bsz) < 0.5), real_unmatched_from=args.real_unmatched_from)
             for g_ in opt.param_groups:
                 g_["lr"] = lr_at(pairs_seen, args.pairs, args.warmup, args.lr)
             logp = sinkhorn(model.scores(bt), model.bin_score, args.sinkhorn)
@@ -279,6 +289,14 @@ def main() -> None:
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
             opt.step()
+            if args.ema > 0:
+                with torch.no_grad():
+                    for e, p in zip(ema.parameters(), model.parameters()):
+                        e.lerp_(p, 1.0 - args.ema)
+                    for e, b in zip(ema.buffers(), model.buffers()):  # BatchNorm statistics: as trained
+                        e.copy_(b)
+            else:
+                ema.load_state_dict(model.state_dict())
             steps += 1
             pairs_seen += bsz
             kinds[k] += bsz
@@ -289,9 +307,10 @@ def main() -> None:
                       f"lr {opt.param_groups[0]['lr']:.2e} {rate:.1f} pairs/s shard {reader.low_water()}", flush=True)
             if pairs_seen >= next_val or pairs_seen >= limit:
                 next_val += args.val_every
-                v = validate(model, holdout, 512, args.val_threshold, auc=False)
-                v |= validate(model, holdout, 2048, args.val_threshold, auc=True)
-                rec = {"pairs": pairs_seen, "steps": steps, "loss": float(np.mean(running)) if running else None,
+                v = validate(ema, holdout, 512, args.val_threshold, auc=False)
+                v |= validate(ema, holdout, 2048, args.val_threshold, auc=True)
+                rec = {"pairs": pairs_seen, "steps": steps, "weights": "ema" if args.ema > 0 else "trained",
+                       "loss": float(np.mean(running)) if running else None,
                        "lr": opt.param_groups[0]["lr"], "train_s": round(spent + time.time() - t_mark, 1),
                        "distinct_pairs": reader.low_water() * args.shard_size, "by_keypoints": dict(kinds)} | v
                 running = []
@@ -301,7 +320,7 @@ def main() -> None:
                 score = v["auc5px@2048"] + v["f1@2048"]
                 if score > best:
                     best = score
-                    save_safetensors(model, os.path.join(work, "best.safetensors"))
+                    save_safetensors(ema, os.path.join(work, "best.safetensors"))
                 save()
                 t_ckpt = time.time()
             if time.time() - t_ckpt > args.ckpt_minutes * 60:
@@ -309,7 +328,7 @@ def main() -> None:
                 t_ckpt = time.time()
     finally:
         save()
-        save_safetensors(model, os.path.join(work, "last.safetensors"))
+        save_safetensors(ema, os.path.join(work, "last.safetensors"))
         if gen is not None:
             gen.terminate()
         print(f"stopped at {pairs_seen} pairs, step {steps}", flush=True)

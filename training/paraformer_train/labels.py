@@ -6,6 +6,11 @@ terms that are known (P = the keypoint projected into the other image, NaN = unk
 a pair is positive when mutual nearest under d with d < threshold; a keypoint is unmatched
 when its nearest d is at least the threshold and its own projection is known; otherwise it
 is ignored. With every projection known (homographies) this is exactly the evaluation rule.
+
+``unmatched_from`` (per pair) widens the gap between the two: a keypoint is unmatched only
+when its nearest d reaches it, and ignored in between. Real pairs use it, because their
+projections carry pose and depth noise of a few pixels: without the band, true
+correspondences that land 3-5 px off would be taught as unmatched.
 """
 from __future__ import annotations
 
@@ -14,10 +19,13 @@ import torch
 UNMATCHED, IGNORED = -1, -2
 
 
-def ground_truth(kpts0, kpts1, proj0, proj1, threshold: float = 3.0):
+def ground_truth(kpts0, kpts1, proj0, proj1, threshold: float = 3.0, unmatched_from=None):
     """``kpts0`` ``[B, M, 2]``, ``kpts1`` ``[B, N, 2]``, ``proj0`` (keypoints 0 in image 1)
-    ``[B, M, 2]``, ``proj1`` ``[B, N, 2]`` → ``(matches0 [B, M], matches1 [B, N])`` int64."""
+    ``[B, M, 2]``, ``proj1`` ``[B, N, 2]``, ``unmatched_from`` ``None`` (= threshold), a
+    float or ``[B]`` → ``(matches0 [B, M], matches1 [B, N])`` int64."""
     b, m, _ = kpts0.shape
+    far = torch.as_tensor(threshold if unmatched_from is None else unmatched_from, dtype=kpts0.dtype)
+    far = torch.maximum(far, torch.as_tensor(threshold, dtype=kpts0.dtype)).reshape(-1, 1)
     n = kpts1.shape[1]
     known0 = torch.isfinite(proj0).all(-1)
     known1 = torch.isfinite(proj1).all(-1)
@@ -37,10 +45,10 @@ def ground_truth(kpts0, kpts1, proj0, proj1, threshold: float = 3.0):
     pos0 = mutual0 & (d0 < threshold)
     m0 = torch.full((b, m), IGNORED, dtype=torch.long)
     m0 = torch.where(pos0, j0, m0)
-    m0 = torch.where((d0 >= threshold) & known0, torch.full_like(m0, UNMATCHED), m0)
+    m0 = torch.where((d0 >= far) & known0, torch.full_like(m0, UNMATCHED), m0)
     m1 = torch.full((b, n), IGNORED, dtype=torch.long)
     ar1 = torch.arange(n)[None].expand(b, n)
     pos1 = (j0.gather(1, i1) == ar1) & (d1 < threshold)
     m1 = torch.where(pos1, i1, m1)
-    m1 = torch.where((d1 >= threshold) & known1, torch.full_like(m1, UNMATCHED), m1)
+    m1 = torch.where((d1 >= far) & known1, torch.full_like(m1, UNMATCHED), m1)
     return m0, m1

@@ -126,10 +126,13 @@ class Shard:
         return len(self.counts)
 
 
-def collate(items: list[tuple[Shard, int]], k_max: int, swap: list[bool], threshold: float = 3.0) -> dict:
+def collate(items: list[tuple[Shard, int]], k_max: int, swap: list[bool], threshold: float = 3.0,
+            real_unmatched_from: float | None = None) -> dict:
     """A batch of pairs cut to the same keypoint counts: the top ``min(k_max, fewest)``
     keypoints by score per view (XFeat sorts by score, so this is XFeat's own top-k), labels
-    from the projections. ``swap[b]`` exchanges the views of pair b."""
+    from the projections. ``swap[b]`` exchanges the views of pair b. ``real_unmatched_from``:
+    the distance from which a keypoint of a real (RGB-D) pair counts as unmatched (see
+    ``labels.ground_truth``; default: ``threshold``, the evaluation rule)."""
     per = []
     for (shard, i), sw in zip(items, swap):
         v0, v1 = shard.views[2 * i], shard.views[2 * i + 1]
@@ -149,7 +152,10 @@ def collate(items: list[tuple[Shard, int]], k_max: int, swap: list[bool], thresh
         "image_size1": torch.tensor(np.stack([p[3] for p in per])),
     }
     proj0, proj1 = stack(0, 3, m), stack(1, 3, n)
-    out["gt0"], out["gt1"] = ground_truth(out["keypoints0"], out["keypoints1"], proj0, proj1, threshold)
+    far = None
+    if real_unmatched_from is not None:
+        far = torch.tensor([real_unmatched_from if shard.kind[i] == 1 else threshold for shard, i in items])
+    out["gt0"], out["gt1"] = ground_truth(out["keypoints0"], out["keypoints1"], proj0, proj1, threshold, far)
     return out
 
 
