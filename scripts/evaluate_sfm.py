@@ -154,7 +154,7 @@ def draw(rec, gt: dict, path: Path, title: str) -> None:
 def run_colmap_sift(images: Path, work: Path) -> tuple[object, dict]:
     import pycolmap
 
-    from paraformer.sfm.reconstruction import map_incremental, verify  # noqa: F401
+    from paraformer.sfm.reconstruction import map_incremental
 
     db = work / "database.db"
     t = time.time()
@@ -172,7 +172,8 @@ def run_colmap_sift(images: Path, work: Path) -> tuple[object, dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", type=Path, default=STRECHA, help="folder with images/ and gt_dense_cameras/")
-    ap.add_argument("--matchers", default="paraformer-xfeat,paraformer-u-xfeat,mnn")
+    ap.add_argument("--matchers", default="paraformer-xfeat,paraformer-u-xfeat,mnn",
+                    help="comma-separated shipped names, baselines or weights files")
     ap.add_argument("--max-keypoints", type=int, default=2048)
     ap.add_argument("--no-colmap-sift", action="store_true", help="skip COLMAP's SIFT reference")
     ap.add_argument("--out", type=Path, default=None, help="JSON to write")
@@ -187,8 +188,8 @@ def main() -> None:
     results: dict = {"scene": str(a.scene), "images": len(gt), "max_keypoints": a.max_keypoints,
                      "pycolmap": pycolmap.__version__, "rows": {}}
     with tempfile.TemporaryDirectory() as tmp:
-        for name in a.matchers.split(","):
-            out = Path(tmp) / name
+        for i, name in enumerate(a.matchers.split(",")):
+            out = Path(tmp) / f"{i}_{Path(name).stem}"  # names may be weights files anywhere
             sfm.reconstruct(a.scene / "images", out, matcher=name, max_keypoints=a.max_keypoints, progress=False)
             s = json.loads((out / "summary.json").read_text())
             rec = pycolmap.Reconstruction(str(out / "sparse" / "0")) if (out / "sparse" / "0").exists() else None

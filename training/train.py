@@ -197,7 +197,8 @@ def main() -> None:
                     help="training labels of real pairs: unmatched only from this distance (px), ignored "
                          "between it and 3 px (pose/depth noise); validation keeps the evaluation rule")
     ap.add_argument("--gen-threads", type=int, default=1)
-    ap.add_argument("--gen-nice", type=int, default=5)
+    ap.add_argument("--gen-nice", type=int, default=0,
+                    help="generator niceness over the trainer's: equal by default, since a starved generator means pairs drawn twice")
     ap.add_argument("--ckpt-minutes", type=float, default=10.0)
     ap.add_argument("--val-every", type=int, default=20_000, help="validate every this many pairs")
     ap.add_argument("--val-threshold", type=float, default=0.2)
