@@ -131,6 +131,7 @@ def main() -> None:
     model = load_safetensors(os.path.join(args.run, best["weights"]))
     model.config["match_threshold"] = best["threshold"]
     model.config["sinkhorn_iterations"] = best["sinkhorn_iterations"]
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     save_safetensors(model, args.out)
     report_path = args.report or os.path.join(HERE, "results", f"{args.name}_calibration.json")
     os.makedirs(os.path.dirname(os.path.abspath(report_path)), exist_ok=True)
