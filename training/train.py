@@ -226,14 +226,16 @@ def main() -> None:
     model = Matcher(cfg).train()
     # The exported weights: an exponential moving average of the trained ones, which smooths
     # the noise of small batches (batch 2-8) at a constant learning rate.
-    ema = Matcher(cfg).eval()
+    # With --ema 0 it is the trained model itself.
+    ema = Matcher(cfg).eval() if args.ema > 0 else model
     ema.load_state_dict(model.state_dict())
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     pairs_seen, steps, cursor, spent, best = 0, 0, 0, 0.0, -1.0
     rng = np.random.default_rng([args.seed, 7])
     if state is not None:
         model.load_state_dict(state["model"])
-        ema.load_state_dict(state.get("ema", state["model"]))
+        if ema is not model:
+            ema.load_state_dict(state.get("ema", state["model"]))
         opt.load_state_dict(state["opt"])
         pairs_seen, steps, cursor = state["pairs"], state["steps"], state["cursor"]
         spent, best = state["train_s"], state["best"]
@@ -290,14 +292,12 @@ def main() -> None:
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
             opt.step()
-            if args.ema > 0:
+            if ema is not model:
                 with torch.no_grad():
                     for e, p in zip(ema.parameters(), model.parameters()):
                         e.lerp_(p, 1.0 - args.ema)
                     for e, b in zip(ema.buffers(), model.buffers()):  # BatchNorm statistics: as trained
                         e.copy_(b)
-            else:
-                ema.load_state_dict(model.state_dict())
             steps += 1
             pairs_seen += bsz
             kinds[k] += bsz
