@@ -55,6 +55,25 @@ def test_extract_from_arrays_equals_from_path():
     assert (np.diff(a["scores"]) <= 0).all()
 
 
+def test_extract_uint8_colour_equals_float_and_other_integers():
+    """uint8 pixels go to Rust as bytes, other types as float32: the same keypoints."""
+    img = _png(DATA / "xfeat" / "coffee_crop_rgb.png")
+    a = paraformer.extract(img, 500)
+    for arr in (img.astype(np.float32), img.astype(np.int32), img.astype(np.float64)):
+        b = paraformer.extract(arr, 500)
+        np.testing.assert_array_equal(a["keypoints"], b["keypoints"])
+        np.testing.assert_array_equal(a["descriptors"], b["descriptors"])
+
+
+def test_native_extract_rejects_an_unknown_pixel_type():
+    from paraformer._paraformer import extract as native_extract
+
+    with pytest.raises(ValueError, match="dtype.*u16"):
+        native_extract(bytes(64 * 64), 64, 64, 1, 10, "u16")
+    with pytest.raises(ValueError, match="image"):
+        native_extract(bytes(10), 64, 64, 1, 10, "u8")
+
+
 def test_extract_then_match_recovers_the_sample_homography():
     f0 = paraformer.extract(SAMPLE / "coffee_0.jpg", 512)
     f1 = paraformer.extract(str(SAMPLE / "coffee_1.jpg"), 512)

@@ -1,12 +1,14 @@
 //! Criterion benchmarks (random weights made at bench time): end-to-end latency of the
 //! three models at the paper's full widths (C = 256) at 512/1024/2048 keypoints; the
 //! shipped configurations (C = 64 with 4 heads, and 2 heads) in fp32 and bf16; the parts
-//! separately (one parallel layer, one serial layer, Sinkhorn, encoder); and one C = 64
-//! parallel layer through the fused narrow-head kernels against the general path.
+//! separately (one parallel layer, one serial layer, Sinkhorn, encoder); one C = 64
+//! parallel layer through the fused narrow-head kernels against the general path; and
+//! XFeat at 640×480 with its direct convolutions against im2col + GEMM.
 //!
 //!     cargo bench -p paraformer-benches
 //!     cargo bench -p paraformer-benches -- end_to_end/paraformer/2048   # one case
 //!     cargo bench -p paraformer-benches -- shipped                      # shipped configs
+//!     cargo bench -p paraformer-benches -- xfeat                        # XFeat, both paths
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use paraformer::kernels::{Ctx, Matrix, Precision};
@@ -14,7 +16,7 @@ use paraformer::layers::{ParallelLayer, SerialLayer};
 use paraformer::sinkhorn::log_optimal_transport_inplace;
 use paraformer::wave_pe::WavePe;
 use paraformer::weights::random_var_builder;
-use paraformer::{Config, Features, LayerKind, MatchOptions, Matcher, ParallelSwitches};
+use paraformer::{Config, Features, GrayImage, LayerKind, MatchOptions, Matcher, ParallelSwitches, XFeat};
 
 const KEYPOINTS: [usize; 3] = [512, 1024, 2048];
 
@@ -108,5 +110,22 @@ fn shipped(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, end_to_end, shipped, parts);
+/// XFeat on the sample image stretched to 640×480 (nearest pixel), 4096 keypoints.
+fn xfeat(c: &mut Criterion) {
+    let mut g = c.benchmark_group("xfeat_640x480");
+    g.sample_size(20);
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/sample/coffee_0.jpg");
+    let src = GrayImage::open(path).expect("sample image");
+    let (w, h) = (640, 480);
+    let data = (0..w * h).map(|i| src.data[(i / w) * src.height / h * src.width + (i % w) * src.width / w]).collect();
+    let img = GrayImage::new(w, h, data).expect("image");
+    let direct = XFeat::pretrained().expect("weights");
+    let general = XFeat::pretrained().expect("weights").without_direct_convolutions();
+    for (name, xf) in [("direct", &direct), ("im2col_gemm", &general)] {
+        g.bench_function(name, |b| b.iter(|| xf.detect_and_compute(&img, Some(4096)).expect("runs")));
+    }
+    g.finish();
+}
+
+criterion_group!(benches, end_to_end, shipped, parts, xfeat);
 criterion_main!(benches);

@@ -309,9 +309,14 @@ def extract(image: Union[str, os.PathLike, ArrayLike], max_keypoints: int = 2048
             arr = arr[:, :, None]
         if arr.ndim != 3 or arr.shape[2] not in (1, 2, 3, 4):
             raise ValueError(f"image: expected shape [H, W] or [H, W, C] with C in 1..4, got {list(np.shape(image))}")
-        _check_finite(arr.astype(np.float32, copy=False), "image")
         h, w, c = arr.shape
-        raw = _extract(_le32(arr), h, w, c, int(max_keypoints))
+        if arr.dtype == np.uint8:
+            # Passed as is: a quarter of the bytes, converted in Rust.
+            raw = _extract(np.ascontiguousarray(arr).tobytes(), h, w, c, int(max_keypoints), "u8")
+        else:
+            if not np.issubdtype(arr.dtype, np.integer):
+                _check_finite(arr.astype(np.float32, copy=False), "image")
+            raw = _extract(_le32(arr), h, w, c, int(max_keypoints))
     kpts, scores, desc, width, height = raw
     return {
         "keypoints": np.frombuffer(kpts, "<f4").reshape(-1, 2).astype(np.float32),

@@ -596,20 +596,35 @@ fn extracted(f: Features) -> Extracted {
 /// XFeat keypoints and descriptors of an image given as pixels.
 ///
 /// Args:
-///     pixels: `[H, W, C]` float32 little-endian bytes, values 0–255.
+///     pixels: `[H, W, C]` values 0–255 as bytes: float32 little-endian, or uint8.
 ///     height: H.
 ///     width: W.
 ///     channels: C (1 grey, 2 grey + alpha, 3 RGB, 4 RGBA).
 ///     top_k: keep at most this many keypoints (best score first).
+///     dtype: `"f32"` or `"u8"`, the element type of `pixels`.
 /// Returns:
 ///     `(kpts, scores, desc, width, height)`: float32 little-endian bytes `[K, 2]`, `[K]`,
 ///     `[K, 64]` and the image size.
 #[pyfunction]
-#[pyo3(signature = (pixels, height, width, channels, top_k))]
-fn extract(py: Python<'_>, pixels: PyBackedBytes, height: usize, width: usize, channels: usize, top_k: usize) -> PyResult<Extracted> {
+#[pyo3(signature = (pixels, height, width, channels, top_k, dtype = "f32"))]
+fn extract(
+    py: Python<'_>,
+    pixels: PyBackedBytes,
+    height: usize,
+    width: usize,
+    channels: usize,
+    top_k: usize,
+    dtype: &str,
+) -> PyResult<Extracted> {
     let xf = xfeat()?;
+    let u8_pixels = match dtype {
+        "f32" => false,
+        "u8" => true,
+        other => return Err(PyValueError::new_err(format!("dtype: expected \"f32\" or \"u8\", got {other:?}"))),
+    };
     py.detach(|| {
-        let img = GrayImage::from_channels(width, height, channels, &f32_from_le(&pixels))?;
+        let values: Vec<f32> = if u8_pixels { pixels.iter().map(|&b| b as f32).collect() } else { f32_from_le(&pixels) };
+        let img = GrayImage::from_channels(width, height, channels, &values)?;
         xf.detect_and_compute(&img, Some(top_k))
     })
     .map(extracted)

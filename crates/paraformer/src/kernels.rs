@@ -391,6 +391,57 @@ multiversion! {
 }
 
 multiversion! {
+    /// Softmax down every column of `data` (`rows × cols`, row-major), in place: column
+    /// `j` becomes the softmax of `data[r·cols + j]` over `r`. Vectorised across columns.
+    pub fn softmax_columns(data: &mut [f32], rows: usize, cols: usize) {
+        if rows == 0 || cols == 0 {
+            return;
+        }
+        let mut j0 = 0;
+        while j0 < cols {
+            let n = LANES.min(cols - j0);
+            let (mut m, mut s) = ([f32::NEG_INFINITY; LANES], [0.0f32; LANES]);
+            if n == LANES {
+                for r in 0..rows {
+                    let x = &data[r * cols + j0..][..LANES];
+                    for c in 0..LANES {
+                        m[c] = m[c].max(x[c]);
+                    }
+                }
+                for r in 0..rows {
+                    let x = &mut data[r * cols + j0..][..LANES];
+                    for c in 0..LANES {
+                        x[c] = exp_fast(x[c] - m[c]);
+                        s[c] += x[c];
+                    }
+                }
+                for r in 0..rows {
+                    let x = &mut data[r * cols + j0..][..LANES];
+                    for c in 0..LANES {
+                        x[c] /= s[c];
+                    }
+                }
+            } else {
+                for c in 0..n {
+                    let col = |r: usize| r * cols + j0 + c;
+                    let mc = (0..rows).map(|r| data[col(r)]).fold(f32::NEG_INFINITY, f32::max);
+                    let mut sc = 0.0;
+                    for r in 0..rows {
+                        let e = exp_fast(data[col(r)] - mc);
+                        data[col(r)] = e;
+                        sc += e;
+                    }
+                    for r in 0..rows {
+                        data[col(r)] /= sc;
+                    }
+                }
+            }
+            j0 += n;
+        }
+    }
+}
+
+multiversion! {
     /// `log Σ_j exp(a_j + b_j)`.
     pub fn logsumexp_plus(a: &[f32], b: &[f32]) -> f32 {
         let n = a.len().min(b.len());
@@ -564,6 +615,24 @@ mod tests {
             let want = row.iter().zip(&b).map(|(&a, &b)| ((a + b) as f64).exp()).sum::<f64>().ln();
             assert!((lse - want).abs() < 1e-5, "{lse} vs {want}");
         }
+    }
+
+    #[test]
+    fn softmax_columns_matches_the_definition() {
+        // 37 columns: two full vectors and a tail.
+        let (rows, cols) = (65, 37);
+        let mut x: Vec<f32> = (0..rows * cols).map(|i| ((i * 7919) % 1000) as f32 / 50.0 - 10.0).collect();
+        let want: Vec<f32> = (0..rows * cols)
+            .map(|i| {
+                let (r, c) = (i / cols, i % cols);
+                let m = (0..rows).map(|q| x[q * cols + c] as f64).fold(f64::NEG_INFINITY, f64::max);
+                let z: f64 = (0..rows).map(|q| (x[q * cols + c] as f64 - m).exp()).sum();
+                ((x[r * cols + c] as f64 - m).exp() / z) as f32
+            })
+            .collect();
+        softmax_columns(&mut x, rows, cols);
+        let worst = x.iter().zip(&want).map(|(a, b)| ((a - b) / b.max(1e-30)).abs()).fold(0.0f32, f32::max);
+        assert!(worst < 1e-5, "relative error {worst}");
     }
 
     #[test]

@@ -39,6 +39,8 @@ pub mod attention;
 #[doc(hidden)]
 pub mod attention_fused;
 pub mod config;
+#[doc(hidden)]
+pub mod conv_direct;
 pub mod error;
 pub mod eval;
 pub mod features;

@@ -15,9 +15,10 @@ use std::path::Path;
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
+use crate::conv_direct::{pool, DirectConv};
 use crate::error::{Error, Result};
 use crate::features::Features;
-use crate::kernels::{relu, Ctx, View};
+use crate::kernels::{relu, softmax_columns, Ctx, View};
 use crate::mlp::read;
 use crate::weights::Weights;
 
@@ -164,6 +165,12 @@ struct Planes {
     data: Vec<f32>,
 }
 
+impl Drop for Planes {
+    fn drop(&mut self) {
+        pool::give(std::mem::take(&mut self.data));
+    }
+}
+
 impl Planes {
     fn add(mut self, other: &Planes) -> Planes {
         self.data.iter_mut().zip(&other.data).for_each(|(a, b)| *a += b);
@@ -183,6 +190,8 @@ struct Conv {
     k: usize,
     stride: usize,
     relu: bool,
+    /// The direct kernel where the CPU has it (else im2col + GEMM).
+    direct: Option<DirectConv>,
 }
 
 impl Conv {
@@ -194,25 +203,31 @@ impl Conv {
         let var = read(&bn, &[cout], "running_var")?;
         let inv: Vec<f32> = var.iter().map(|v| 1.0 / (v + 1e-5).sqrt()).collect();
         let per = cin * k * k;
-        let weight = w.chunks_exact(per).zip(&inv).flat_map(|(row, s)| row.iter().map(move |v| v * s)).collect();
-        let bias = mean.iter().zip(&inv).map(|(m, s)| -m * s).collect();
-        Ok(Self { weight, bias, cin, cout, k, stride, relu: true })
+        let weight: Vec<f32> = w.chunks_exact(per).zip(&inv).flat_map(|(row, s)| row.iter().map(move |v| v * s)).collect();
+        let bias: Vec<f32> = mean.iter().zip(&inv).map(|(m, s)| -m * s).collect();
+        let direct = DirectConv::new(&weight, &bias, cin, cout, k, stride, true);
+        Ok(Self { weight, bias, cin, cout, k, stride, relu: true, direct })
     }
 
     /// A plain `nn.Conv2d(cin, cout, 1)` with bias.
     fn plain1x1(vb: VarBuilder, cin: usize, cout: usize) -> candle_core::Result<Self> {
         let weight = read(&vb, &[cout, cin, 1, 1], "weight")?;
         let bias = read(&vb, &[cout], "bias")?;
-        Ok(Self { weight, bias, cin, cout, k: 1, stride: 1, relu: false })
+        let direct = DirectConv::new(&weight, &bias, cin, cout, 1, 1, false);
+        Ok(Self { weight, bias, cin, cout, k: 1, stride: 1, relu: false, direct })
     }
 
     fn forward(&self, ctx: &Ctx, x: &Planes) -> Result<Planes> {
+        if let Some(d) = &self.direct {
+            let (h, w) = d.output_size(x.h, x.w);
+            return Ok(Planes { c: d.cout(), h, w, data: d.forward(&x.data, x.h, x.w) });
+        }
         let pad = self.k / 2;
         let (ho, wo) = ((x.h + 2 * pad - self.k) / self.stride + 1, (x.w + 2 * pad - self.k) / self.stride + 1);
         let p = ho * wo;
         let kk = self.cin * self.k * self.k;
         // Output rows start from the bias; the GEMM accumulates onto them.
-        let mut out = vec![0.0f32; self.cout * p];
+        let mut out = pool::take(self.cout * p);
         out.par_chunks_mut(p.max(1)).zip(&self.bias).for_each(|(row, &b)| row.fill(b));
         let a = View { data: &self.weight, rows: self.cout, cols: kk, stride: kk };
         if self.k == 1 && self.stride == 1 {
@@ -296,6 +311,15 @@ fn run(ctx: &Ctx, layers: &[Conv], x: &Planes) -> Result<Planes> {
 /// Bilinear resampling as `F.interpolate(mode="bilinear", align_corners=False)` (no
 /// antialiasing): source coordinate `(d + 0.5)·in/out − 0.5`, clamped at 0.
 fn resize_bilinear(x: &Planes, h: usize, w: usize) -> Planes {
+    let mut out = Planes { c: x.c, h, w, data: vec![0.0f32; x.c * h * w] };
+    resample_add(x, &mut out);
+    out
+}
+
+/// Adds the bilinear resampling of `x` to the size of `dst` onto `dst` (same channels):
+/// XFeat's fusion `x3 + up(x4) + up(x5)` without temporaries.
+fn resample_add(x: &Planes, dst: &mut Planes) {
+    let (h, w) = (dst.h, dst.w);
     let taps = |n_in: usize, n_out: usize| -> Vec<(usize, usize, f32)> {
         let scale = n_in as f32 / n_out as f32;
         (0..n_out)
@@ -308,19 +332,17 @@ fn resize_bilinear(x: &Planes, h: usize, w: usize) -> Planes {
             .collect()
     };
     let (ty, tx) = (taps(x.h, h), taps(x.w, w));
-    let mut data = vec![0.0f32; x.c * h * w];
-    data.par_chunks_mut(h * w).enumerate().for_each(|(c, out)| {
+    dst.data.par_chunks_mut(h * w).enumerate().for_each(|(c, out)| {
         let plane = &x.data[c * x.h * x.w..(c + 1) * x.h * x.w];
         for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
             let (r0, r1) = (&plane[y0 * x.w..(y0 + 1) * x.w], &plane[y1 * x.w..(y1 + 1) * x.w]);
             for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
                 let top = r0[x0] * (1.0 - lx) + r0[x1] * lx;
                 let bottom = r1[x0] * (1.0 - lx) + r1[x1] * lx;
-                out[oy * w + ox] = top * (1.0 - ly) + bottom * ly;
+                out[oy * w + ox] += top * (1.0 - ly) + bottom * ly;
             }
         }
     });
-    Planes { c: x.c, h, w, data }
 }
 
 /// `AvgPool2d(4, stride=4)` of a single plane whose sides are multiples of 4.
@@ -400,9 +422,11 @@ impl XFeatModel {
         let x4 = run(ctx, &self.block4, &x3)?;
         let x5 = run(ctx, &self.block5, &x4)?;
         let (h8, w8) = (x3.h, x3.w);
-        let fused = x3.add(&resize_bilinear(&x4, h8, w8)).add(&resize_bilinear(&x5, h8, w8));
+        let mut fused = x3;
+        resample_add(&x4, &mut fused);
+        resample_add(&x5, &mut fused);
         let feats = run(ctx, &self.block_fusion, &fused)?;
-        let mut reliability = run(ctx, &self.heatmap_head, &feats)?.data;
+        let mut reliability = std::mem::take(&mut run(ctx, &self.heatmap_head, &feats)?.data);
         reliability.iter_mut().for_each(|v| *v = 1.0 / (1.0 + (-*v).exp()));
         // unfold2d(x, 8): channel ky·8 + kx of cell (y, x) is pixel (8y + ky, 8x + kx).
         let mut cells = vec![0.0f32; 64 * h8 * w8];
@@ -441,19 +465,15 @@ fn keypoint_heatmap(logits: &[f32], h8: usize, w8: usize) -> Vec<f32> {
     let p = h8 * w8;
     let w = w8 * 8;
     let mut heat = vec![0.0f32; p * 64];
-    // One band of 8 pixel rows per row of cells.
+    // One band of 8 pixel rows per row of cells: its `[65, w8]` logits, softmax down
+    // the columns, then each cell's 64 probabilities to its 8×8 pixels.
     heat.par_chunks_mut(8 * w).enumerate().for_each(|(cy, band)| {
-        let mut e = [0.0f32; 65];
-        for cx in 0..w8 {
-            let cell = cy * w8 + cx;
-            let max = (0..65).map(|k| logits[k * p + cell]).fold(f32::NEG_INFINITY, f32::max);
-            let mut sum = 0.0;
-            for (k, ek) in e.iter_mut().enumerate() {
-                *ek = (logits[k * p + cell] - max).exp();
-                sum += *ek;
-            }
-            for k in 0..64 {
-                band[(k / 8) * w + cx * 8 + k % 8] = e[k] / sum;
+        let mut e: Vec<f32> = (0..65).flat_map(|k| &logits[k * p + cy * w8..][..w8]).copied().collect();
+        softmax_columns(&mut e, 65, w8);
+        for k in 0..64 {
+            let (row, col) = (k / 8, k % 8);
+            for (cx, v) in e[k * w8..(k + 1) * w8].iter().enumerate() {
+                band[row * w + cx * 8 + col] = *v;
             }
         }
     });
@@ -529,6 +549,18 @@ impl XFeat {
         self
     }
 
+    /// The same network on the general im2col + GEMM path only (benchmarks compare it
+    /// with the direct convolutions).
+    #[doc(hidden)]
+    pub fn without_direct_convolutions(mut self) -> Self {
+        let n = &mut self.net;
+        let blocks = [&mut n.block1, &mut n.block2, &mut n.block3, &mut n.block4, &mut n.block5, &mut n.block_fusion, &mut n.heatmap_head, &mut n.keypoint_head];
+        for conv in blocks.into_iter().flat_map(|b| b.iter_mut()).chain([&mut n.skip1]) {
+            conv.direct = None;
+        }
+        self
+    }
+
     /// The detection settings in use.
     pub fn config(&self) -> &XFeatConfig {
         &self.config
@@ -590,8 +622,15 @@ impl XFeat {
                 (s, x, y)
             })
             .collect();
-        cand.sort_by(|a, b| b.0.total_cmp(&a.0));
-        cand.truncate(top_k);
+        // Best score first; ties in row-major order (that of `nms`), as a stable sort.
+        let order = |a: &(f32, usize, usize), b: &(f32, usize, usize)| b.0.total_cmp(&a.0).then((a.2, a.1).cmp(&(b.2, b.1)));
+        if top_k == 0 {
+            cand.clear();
+        } else if cand.len() > top_k {
+            cand.select_nth_unstable_by(top_k - 1, order);
+            cand.truncate(top_k);
+        }
+        cand.sort_unstable_by(order);
         cand.retain(|c| c.0 > 0.0);
 
         let mut descriptors = vec![0.0f32; cand.len() * XFEAT_DIM];
@@ -624,35 +663,34 @@ impl XFeat {
     }
 }
 
-/// `InstanceNorm2d(1)`: zero mean, unit (biased) variance, eps 1e-5.
+/// `InstanceNorm2d(1)`: zero mean, unit (biased) variance, eps 1e-5; sums in f64 over
+/// fixed blocks (the same result on any thread count).
 fn instance_norm(v: &mut [f32]) {
+    const BLOCK: usize = 1 << 14;
     let n = v.len() as f64;
-    let mean = v.iter().map(|&a| a as f64).sum::<f64>() / n;
-    let var = v.iter().map(|&a| (a as f64 - mean).powi(2)).sum::<f64>() / n;
+    let parts: Vec<f64> = v.par_chunks(BLOCK).map(|c| c.iter().map(|&a| a as f64).sum::<f64>()).collect();
+    let mean = parts.iter().sum::<f64>() / n;
+    let parts: Vec<f64> = v.par_chunks(BLOCK).map(|c| c.iter().map(|&a| (a as f64 - mean).powi(2)).sum::<f64>()).collect();
+    let var = parts.iter().sum::<f64>() / n;
     let inv = 1.0 / (var + 1e-5).sqrt();
-    v.iter_mut().for_each(|a| *a = ((*a as f64 - mean) * inv) as f32);
+    v.par_chunks_mut(BLOCK).for_each(|c| c.iter_mut().for_each(|a| *a = ((*a as f64 - mean) * inv) as f32));
 }
 
 /// Pixels equal to the maximum of their 5×5 neighbourhood and above `threshold`, in
 /// row-major order.
 fn nms(heat: &[f32], w: usize, h: usize, threshold: f32) -> Vec<(usize, usize)> {
     const R: usize = 2;
-    // Separable max: rows, then columns (max is exact, so the order does not matter).
-    let mut rows = vec![0.0f32; w * h];
-    rows.par_chunks_mut(w).zip(heat.par_chunks(w)).for_each(|(out, line)| {
-        for (x, o) in out.iter_mut().enumerate() {
-            let (a, b) = (x.saturating_sub(R), (x + R).min(w - 1));
-            *o = line[a..=b].iter().copied().fold(f32::NEG_INFINITY, f32::max);
-        }
-    });
+    // Most pixels are below the threshold: only those above it look at their window.
     let per_row: Vec<Vec<(usize, usize)>> = (0..h)
         .into_par_iter()
         .map(|y| {
             let (a, b) = (y.saturating_sub(R), (y + R).min(h - 1));
+            let line = &heat[y * w..(y + 1) * w];
             (0..w)
                 .filter(|&x| {
-                    let v = heat[y * w + x];
-                    v > threshold && v == (a..=b).map(|yy| rows[yy * w + x]).fold(f32::NEG_INFINITY, f32::max)
+                    let v = line[x];
+                    let (l, r) = (x.saturating_sub(R), (x + R).min(w - 1));
+                    v > threshold && (a..=b).all(|yy| heat[yy * w + l..=yy * w + r].iter().all(|&u| u <= v))
                 })
                 .map(|x| (x, y))
                 .collect()

