@@ -118,3 +118,21 @@ def test_last_iteration_sinkhorn_has_the_full_value():
         full = log_optimal_transport(s, b, 50)
         fast = log_optimal_transport_last_grad(s, b, 50)
         assert (full - fast).abs().max().item() < 1e-3 * max(1.0, scale)
+
+
+def test_corner_error_is_inf_not_an_exception_on_bad_fits():
+    from paraformer_train.evalsets import corner_error
+
+    rng = np.random.default_rng(5)
+    h = np.array([[1.0, 0.02, 3.0], [0.01, 0.99, -2.0], [0.0, 0.0, 1.0]])
+    p0 = rng.uniform(0, 200, (60, 2)).astype(np.float32)
+    p1 = data.apply_h(h, p0).astype(np.float32)
+    assert corner_error(p0, p1, h, 200, 200) < 0.1
+    assert corner_error(p0[:3], p1[:3], h, 200, 200) == float("inf")
+    same = np.repeat(p0[:1], 10, 0)
+    assert corner_error(same, same, h, 200, 200) == float("inf")
+
+
+def test_rgbd_split_names_a_bad_split():
+    with pytest.raises(ValueError, match="split"):
+        rgbd.split_pairs([], "test", "/tmp")

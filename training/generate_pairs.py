@@ -24,19 +24,6 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paraformer_train import data, rgbd, stream  # noqa: E402
 
 SHARED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "..", "shared", "data")
-HOLDOUT_FRACTION = 0.15  # the last 15% of each RGB-D sequence is held out for validation
-
-
-def rgbd_sequences(roots: list[str], split: str, cache: str) -> list[tuple[rgbd.Sequence, list]]:
-    out = []
-    for root in roots:
-        seq = rgbd.Sequence(root)
-        cut = int(len(seq) * (1 - HOLDOUT_FRACTION))
-        frames = range(0, cut - 10) if split == "train" else range(cut, len(seq))
-        out.append((seq, rgbd.pair_list(seq, frames, cache)))
-    return out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--pool", required=True)
@@ -62,7 +49,7 @@ def main() -> None:
 
     cv2.setNumThreads(1)
     os.makedirs(args.pool, exist_ok=True)
-    seqs = rgbd_sequences([r for r in args.rgbd if os.path.isdir(r)], args.rgbd_split, args.cache)
+    seqs = rgbd.split_pairs([r for r in args.rgbd if os.path.isdir(r)], args.rgbd_split, args.cache)
     src = stream.PairSource(data.list_photos(args.photos), seqs, args.seed, args.real_fraction)
     print(f"generator: {len(src.photos)} photos, RGB-D pairs {[len(p) for _, p in src.sequences]}, "
           f"real fraction {src.real_fraction}, from shard {args.start}", flush=True)

@@ -103,6 +103,7 @@ def validate(model: Matcher, shards: list[stream.Shard], keypoints: int, thresho
     """Loss, P/R/F1 at ``threshold`` over the holdout pairs cut to ``keypoints``; with
     ``auc``, homography AUC@5px (corner error, RANSAC 3 px) over the synthetic ones."""
     from paraformer import geometry as g
+    from paraformer_train.evalsets import corner_error
 
     model.eval()
     tp = npred = ngt = 0
@@ -121,18 +122,9 @@ def validate(model: Matcher, shards: list[stream.Shard], keypoints: int, thresho
             if auc and shard.kind[i] == 0:
                 m0 = pred[0].numpy()
                 ok = m0 >= 0
-                p0 = bt["keypoints0"][0].numpy()[ok]
-                p1 = bt["keypoints1"][0].numpy()[m0[ok]]
                 w, h = shard.image_size[i][0]
-                err = float("inf")
-                if ok.sum() >= 4:
-                    try:
-                        fit = g.find_homography(p0, p1, threshold=3.0)
-                        if fit["model"] is not None:
-                            err = g.homography_corner_error(fit["model"], shard.H[i], w, h)
-                    except ValueError:
-                        pass
-                errors.append(err)
+                errors.append(corner_error(bt["keypoints0"][0].numpy()[ok], bt["keypoints1"][0].numpy()[m0[ok]],
+                                           shard.H[i], w, h))
     model.train()
     p, r = tp / max(npred, 1), tp / max(ngt, 1)
     out = {f"val_loss@{keypoints}": loss / max(n, 1), f"precision@{keypoints}": p, f"recall@{keypoints}": r,

@@ -79,17 +79,12 @@ def rgbd_holdout_pairs(shared: str, cache: str, per_sequence: int = 24) -> list[
     """Pose pairs from the held-out tail of each RGB-D sequence (never trained on): the pair
     lists of ``generate_pairs.py --rgbd-split holdout``, ``per_sequence`` spread evenly over
     the covisibility order, hardest first (sequences of ``rgbd.MISREGISTERED`` left out)."""
-    import sys
-
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    from generate_pairs import rgbd_sequences  # the trainer's own split
-
-    from paraformer_train.rgbd import MISREGISTERED
+    from paraformer_train.rgbd import MISREGISTERED, split_pairs  # the trainer's own split
 
     roots = sorted(p for p in glob.glob(os.path.join(shared, "rgbd", "*"))
                    if os.path.isdir(p) and os.path.basename(p) not in MISREGISTERED)
     out = []
-    for seq, pairs in rgbd_sequences(roots, "holdout", cache):
+    for seq, pairs in split_pairs(roots, "holdout", cache):
         pairs = sorted(pairs, key=lambda p: p[2])
         pick = np.unique(np.linspace(0, len(pairs) - 1, min(per_sequence, len(pairs))).round().astype(int))
         for a, b, _ in (pairs[i] for i in pick):
@@ -137,13 +132,23 @@ def homography_errors(pairs, feats: Features, match: Matcher) -> dict:
 
 def homography_error(f0: dict, f1: dict, m0: np.ndarray, h: np.ndarray) -> float:
     ok = m0 >= 0
-    if ok.sum() < 4:
-        return float("inf")
-    fit = g.find_homography(f0["keypoints"][ok], f1["keypoints"][m0[ok]], threshold=3.0)
-    if fit["model"] is None:
-        return float("inf")
     w, hh = f0["image_size"]
-    return g.homography_corner_error(fit["model"], h, w, hh)
+    return corner_error(f0["keypoints"][ok], f1["keypoints"][m0[ok]], h, w, hh)
+
+
+def corner_error(p0: np.ndarray, p1: np.ndarray, h_true: np.ndarray, w: float, h: float) -> float:
+    """Mean corner error (px) of the RANSAC homography (3 px) of matched points ``p0`` →
+    ``p1`` against ``h_true`` on a ``w × h`` image; inf with fewer than 4 matches, no
+    model, or a degenerate fit."""
+    if len(p0) < 4:
+        return float("inf")
+    try:
+        fit = g.find_homography(p0, p1, threshold=3.0)
+        if fit["model"] is None:
+            return float("inf")
+        return g.homography_corner_error(fit["model"], h_true, w, h)
+    except ValueError:
+        return float("inf")
 
 
 def pose_error(f0: dict, f1: dict, m0: np.ndarray, k0, k1, r, t, threshold: float = 1.0) -> float:

@@ -139,3 +139,20 @@ def pair_list(seq: Sequence, frames: range, cache: str, max_gap: int = 40,
     json.dump(pairs, open(path + ".tmp", "w"))
     os.replace(path + ".tmp", path)
     return pairs
+
+
+HOLDOUT_FRACTION = 0.15  # the last 15% of each RGB-D sequence is held out for validation
+
+
+def split_pairs(roots: list[str], split: str, cache: str) -> list[tuple[Sequence, list]]:
+    """Each sequence with its covisible pairs in ``split``: "train" (frames before the
+    held-out tail, less a 10-frame gap) or "holdout" (the last ``HOLDOUT_FRACTION``)."""
+    if split not in ("train", "holdout"):
+        raise ValueError(f"split: expected 'train' or 'holdout', got {split!r}")
+    out = []
+    for root in roots:
+        seq = Sequence(root)
+        cut = int(len(seq) * (1 - HOLDOUT_FRACTION))
+        frames = range(0, cut - 10) if split == "train" else range(cut, len(seq))
+        out.append((seq, pair_list(seq, frames, cache)))
+    return out
