@@ -8,7 +8,9 @@ translation directions (scale-free); the pair's error is the larger one, and an 
 was not registered makes its pairs fail. Reported: registered images, points, track
 length, reprojection error, each camera's rotation and centre error after a similarity
 alignment of the centres to the ground truth (medians), pose AUC@1/2/5° and @5/10/20°,
-seconds per stage.
+seconds per stage. COLMAP's verification and mapping are randomised: each pipeline runs
+with seeds 0..N−1 (the same features and matches), and the medians over seeds are the
+headline numbers.
 
     python scripts/evaluate_sfm.py --out eval_results/sfm_strecha_entry-P10.json \
         --picture eval_results/sfm_strecha_entry-P10.png
@@ -151,22 +153,46 @@ def draw(rec, gt: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def run_colmap_sift(images: Path, work: Path) -> tuple[object, dict]:
+def run_colmap_sift(images: Path, work: Path, seeds: int) -> list[tuple[object, dict]]:
+    """COLMAP's SIFT pipeline; extraction once, then matching + verification and mapping
+    per seed (both are randomised)."""
     import pycolmap
 
     from paraformer.sfm.reconstruction import map_incremental
 
-    db = work / "database.db"
+    features = work / "features.db"
     t = time.time()
-    pycolmap.extract_features(db, images)
+    pycolmap.extract_features(features, images)
     t_ext = time.time() - t
-    t = time.time()
-    pycolmap.match_exhaustive(db)
-    t_match = time.time() - t
-    t = time.time()
-    rec = map_incremental(pycolmap, db, images, work)
-    return rec, {"extract_s": round(t_ext, 2), "match_and_verify_s": round(t_match, 2),
-                 "mapping_s": round(time.time() - t, 2)}
+    out = []
+    for seed in range(seeds):
+        run = work / f"seed{seed}"
+        run.mkdir()
+        db = run / "database.db"
+        shutil.copy(features, db)
+        t = time.time()
+        verification = pycolmap.TwoViewGeometryOptions(ransac={"random_seed": seed})
+        pycolmap.match_exhaustive(db, verification_options=verification)
+        t_match = time.time() - t
+        t = time.time()
+        rec = map_incremental(pycolmap, db, images, run, seed=seed)
+        out.append((rec, {"extract_s": round(t_ext, 2), "match_and_verify_s": round(t_match, 2),
+                          "mapping_s": round(time.time() - t, 2)}))
+    return out
+
+
+def over_seeds(rows: list[dict]) -> dict:
+    """The first seed's row, plus per-seed and median values of the headline numbers."""
+    out = dict(rows[0])
+    for key in ("registered_images", "median_rotation_error_deg", "median_centre_error_m"):
+        vals = [r.get(key) for r in rows]
+        out[f"{key}_per_seed"] = vals
+        finite = [v for v in vals if v is not None]
+        out[f"{key}_median_over_seeds"] = round(float(np.median(finite)), 4) if finite else None
+    out["pose_auc@1/2/5_median_over_seeds"] = [round(float(np.median([r["pose_auc@1/2/5"][i] for r in rows])), 1)
+                                               for i in range(3)]
+    out["seeds"] = len(rows)
+    return out
 
 
 def main() -> None:
@@ -176,6 +202,11 @@ def main() -> None:
                     help="comma-separated shipped names, baselines or weights files")
     ap.add_argument("--max-keypoints", type=int, default=2048)
     ap.add_argument("--no-colmap-sift", action="store_true", help="skip COLMAP's SIFT reference")
+    ap.add_argument("--seeds", type=int, default=5,
+                    help="COLMAP random seeds per matcher (verification and mapping are randomised; "
+                         "medians over seeds are reported)")
+    ap.add_argument("--subpixel", action=argparse.BooleanOptionalAction, default=True,
+                    help="sub-pixel XFeat keypoints (paraformer.sfm's default)")
     ap.add_argument("--out", type=Path, default=None, help="JSON to write")
     ap.add_argument("--picture", type=Path, default=None, help="PNG: top view of the first matcher's model")
     a = ap.parse_args()
@@ -187,21 +218,34 @@ def main() -> None:
     gt = read_strecha(a.scene)
     results: dict = {"scene": str(a.scene), "images": len(gt), "max_keypoints": a.max_keypoints,
                      "pycolmap": pycolmap.__version__, "rows": {}}
+    results["seeds"] = a.seeds
+    results["subpixel"] = a.subpixel
     with tempfile.TemporaryDirectory() as tmp:
         for i, name in enumerate(a.matchers.split(",")):
             out = Path(tmp) / f"{i}_{Path(name).stem}"  # names may be weights files anywhere
-            sfm.reconstruct(a.scene / "images", out, matcher=name, max_keypoints=a.max_keypoints, progress=False)
-            s = json.loads((out / "summary.json").read_text())
-            rec = pycolmap.Reconstruction(str(out / "sparse" / "0")) if (out / "sparse" / "0").exists() else None
-            results["rows"][f"XFeat + {name}"] = summarize(rec, gt, s["seconds"])
-            if a.picture and rec is not None and name == a.matchers.split(",")[0]:
-                draw(rec, gt, a.picture, f"{a.scene.name}: XFeat + {name}, {rec.num_reg_images()} cameras")
+            rows = []
+            for seed in range(a.seeds):
+                # Features and matches come from the first run; later seeds redo the
+                # randomised stages (verification, mapping) on the same files.
+                run = out if seed == 0 else out.with_name(f"{out.name}_seed{seed}")
+                if seed == 0:
+                    sfm.reconstruct(a.scene / "images", out, matcher=name, max_keypoints=a.max_keypoints,
+                                    subpixel=a.subpixel, seed=0, progress=False)
+                else:
+                    sfm.reconstruct_from_files(a.scene / "images", run, out / "features.h5", out / "pairs.txt",
+                                               out / "matches.h5", seed=seed)
+                s = json.loads((run / "summary.json").read_text())
+                rec = pycolmap.Reconstruction(str(run / "sparse" / "0")) if (run / "sparse" / "0").exists() else None
+                rows.append(summarize(rec, gt, s["seconds"]))
+                if a.picture and rec is not None and seed == 0 and i == 0:
+                    draw(rec, gt, a.picture, f"{a.scene.name}: XFeat + {name}, {rec.num_reg_images()} cameras")
+            results["rows"][f"XFeat + {name}"] = over_seeds(rows)
             print(name, json.dumps(results["rows"][f"XFeat + {name}"]), flush=True)
         if not a.no_colmap_sift:
             work = Path(tmp) / "colmap_sift"
             work.mkdir()
-            rec, secs = run_colmap_sift(a.scene / "images", work)
-            results["rows"]["COLMAP SIFT (pycolmap defaults)"] = summarize(rec, gt, secs)
+            rows = [summarize(rec, gt, secs) for rec, secs in run_colmap_sift(a.scene / "images", work, a.seeds)]
+            results["rows"]["COLMAP SIFT (pycolmap defaults)"] = over_seeds(rows)
             print("colmap sift", json.dumps(results["rows"]["COLMAP SIFT (pycolmap defaults)"]), flush=True)
         shutil.rmtree(tmp, ignore_errors=True)
     if a.out:

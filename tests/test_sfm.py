@@ -88,7 +88,7 @@ def test_pairs_and_pairs_files(tmp_path):
 def test_extract_writes_hloc_layout(images, features):
     assert sfm.list_images(images) == ["a.jpg", "b.jpg", "sub/c.jpg"]
     assert sfm_io.list_names(features) == ["a.jpg", "b.jpg", "sub/c.jpg"]
-    ref = paraformer.extract(images / "sub" / "c.jpg", max_keypoints=512)
+    ref = paraformer.extract(images / "sub" / "c.jpg", max_keypoints=512, subpixel=True)  # sfm's default
     with h5py.File(features, "r") as fd:
         g = fd["sub/c.jpg"]
         n = len(ref["keypoints"])
@@ -248,6 +248,12 @@ def test_reconstruct_strecha(tmp_path):
     s = json.loads((out / "summary.json").read_text())
     assert s["registered_images"] == rec.num_reg_images() and 0 < s["mean_reprojection_error_px"] < 2
     assert set(s["seconds"]) >= {"extract_s", "match_s", "import_s", "verification_s", "mapping_s"}
+    # COLMAP's randomised stages are seeded (seed 0 by default): a rerun on the same files
+    # gives the same model.
+    again = sfm.reconstruct_from_files(images, tmp_path / "again", out / "features.h5", out / "pairs.txt",
+                                       out / "matches.h5")
+    assert (again.num_reg_images(), again.num_points3D()) == (rec.num_reg_images(), rec.num_points3D())
+    assert abs(again.compute_mean_reprojection_error() - rec.compute_mean_reprojection_error()) < 1e-9
 
 
 def test_hloc_reads_our_files_and_we_read_hlocs(tmp_path):
@@ -262,7 +268,7 @@ def test_hloc_reads_our_files_and_we_read_hlocs(tmp_path):
     pairs = sfm.write_pairs(sfm.pairs_exhaustive(sfm.list_images(images)), tmp_path / "pairs.txt")
     sfm.match_pairs(feats, pairs, matches, matcher="mnn", progress=False)
     # hloc's readers on our files
-    np.testing.assert_array_equal(get_keypoints(feats, "0000.jpg"), paraformer.extract(images / "0000.jpg", 1024)["keypoints"])
+    np.testing.assert_array_equal(get_keypoints(feats, "0000.jpg"), paraformer.extract(images / "0000.jpg", 1024, subpixel=True)["keypoints"])
     with h5py.File(matches, "r") as fd:
         ours, _ = sfm_io.read_matches(fd, "0001.jpg", "0000.jpg")
     theirs, _ = get_matches(matches, "0001.jpg", "0000.jpg")

@@ -121,3 +121,13 @@ def test_pretrained_unknown_name_lists_the_known_ones():
         paraformer.Matcher.pretrained("nope")
     with pytest.raises(ValueError, match="name"):
         paraformer.Matcher.pretrained(3)
+
+
+def test_subpixel_keypoints_refine_within_half_a_pixel():
+    a = paraformer.extract(SAMPLE / "coffee_0.jpg", 400)
+    b = paraformer.extract(SAMPLE / "coffee_0.jpg", 400, subpixel=True)
+    np.testing.assert_array_equal(a["scores"], b["scores"])
+    shift = np.abs(a["keypoints"] - b["keypoints"])
+    scale = np.array([600 / 576, 400 / 384])  # the sample is resized to multiples of 32
+    assert (shift <= 0.5 * scale + 1e-4).all() and (shift > 0).any(axis=1).mean() > 0.5
+    np.testing.assert_allclose(np.linalg.norm(b["descriptors"], axis=1), 1.0, atol=1e-5)

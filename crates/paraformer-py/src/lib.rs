@@ -11,7 +11,7 @@ use paraformer::features::f32_from_le;
 use paraformer::eval::{ground_truth, metrics};
 use paraformer::geometry::{epipolar, homography, NoModel, RansacConfig, RansacResult};
 use paraformer::nalgebra::Matrix3;
-use paraformer::{Config, Error, Features, GrayImage, MatchOptions, MatchOutput, Matcher, Precision, Weights, XFeat};
+use paraformer::{Config, Error, Features, GrayImage, MatchOptions, MatchOutput, Matcher, Precision, Weights, XFeat, XFeatConfig};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyValueError};
 use pyo3::prelude::*;
@@ -575,13 +575,16 @@ fn pretrained_names() -> Vec<&'static str> {
 }
 
 /// The embedded XFeat network, loaded on first use.
-fn xfeat() -> PyResult<&'static XFeat> {
-    static XFEAT: std::sync::OnceLock<XFeat> = std::sync::OnceLock::new();
-    if let Some(x) = XFEAT.get() {
+/// `subpixel`: the instance that refines keypoints (`XFeatConfig::subpixel`).
+fn xfeat(subpixel: bool) -> PyResult<&'static XFeat> {
+    static XFEAT: [std::sync::OnceLock<XFeat>; 2] = [std::sync::OnceLock::new(), std::sync::OnceLock::new()];
+    let cell = &XFEAT[subpixel as usize];
+    if let Some(x) = cell.get() {
         return Ok(x);
     }
     let x = XFeat::pretrained().map_err(to_py_err)?;
-    Ok(XFEAT.get_or_init(|| x))
+    let config = XFeatConfig { subpixel, ..x.config().clone() };
+    Ok(cell.get_or_init(|| x.with_config(config)))
 }
 
 /// XFeat output as `(kpts_f32le, scores_f32le, desc_f32le, width, height)`.
@@ -602,11 +605,13 @@ fn extracted(f: Features) -> Extracted {
 ///     channels: C (1 grey, 2 grey + alpha, 3 RGB, 4 RGBA).
 ///     top_k: keep at most this many keypoints (best score first).
 ///     dtype: `"f32"` or `"u8"`, the element type of `pixels`.
+///     subpixel: refine keypoints to sub-pixel precision (a Gaussian fit of the heatmap
+///         peak); whole pixels, as the original, when false.
 /// Returns:
 ///     `(kpts, scores, desc, width, height)`: float32 little-endian bytes `[K, 2]`, `[K]`,
 ///     `[K, 64]` and the image size.
 #[pyfunction]
-#[pyo3(signature = (pixels, height, width, channels, top_k, dtype = "f32"))]
+#[pyo3(signature = (pixels, height, width, channels, top_k, dtype = "f32", subpixel = false))]
 fn extract(
     py: Python<'_>,
     pixels: PyBackedBytes,
@@ -615,8 +620,9 @@ fn extract(
     channels: usize,
     top_k: usize,
     dtype: &str,
+    subpixel: bool,
 ) -> PyResult<Extracted> {
-    let xf = xfeat()?;
+    let xf = xfeat(subpixel)?;
     let u8_pixels = match dtype {
         "f32" => false,
         "u8" => true,
@@ -636,12 +642,13 @@ fn extract(
 /// Args:
 ///     path: the image file.
 ///     top_k: keep at most this many keypoints (best score first).
+///     subpixel: refine keypoints to sub-pixel precision, as for `extract`.
 /// Returns:
 ///     `(kpts, scores, desc, width, height)` as for `extract`.
 #[pyfunction]
-#[pyo3(signature = (path, top_k))]
-fn extract_file(py: Python<'_>, path: PathBuf, top_k: usize) -> PyResult<Extracted> {
-    let xf = xfeat()?;
+#[pyo3(signature = (path, top_k, subpixel = false))]
+fn extract_file(py: Python<'_>, path: PathBuf, top_k: usize, subpixel: bool) -> PyResult<Extracted> {
+    let xf = xfeat(subpixel)?;
     py.detach(|| xf.detect_and_compute_file(&path, Some(top_k))).map(extracted).map_err(to_py_err)
 }
 

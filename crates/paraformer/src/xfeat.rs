@@ -35,11 +35,15 @@ pub struct XFeatConfig {
     pub top_k: usize,
     /// Heatmap value a keypoint must exceed.
     pub detection_threshold: f32,
+    /// Refine each keypoint to sub-pixel precision by a Gaussian (log-parabola) fit of
+    /// the heatmap across its peak, per axis, within ±0.5 px; descriptors are sampled at
+    /// the refined position. Off by default: the original returns whole pixels.
+    pub subpixel: bool,
 }
 
 impl Default for XFeatConfig {
     fn default() -> Self {
-        Self { top_k: 4096, detection_threshold: 0.05 }
+        Self { top_k: 4096, detection_threshold: 0.05, subpixel: false }
     }
 }
 
@@ -634,8 +638,16 @@ impl XFeat {
         cand.retain(|c| c.0 > 0.0);
 
         let mut descriptors = vec![0.0f32; cand.len() * XFEAT_DIM];
-        descriptors.par_chunks_mut(XFEAT_DIM).zip(&cand).for_each(|(d, &(_, x, y))| {
-            let (ix, iy) = (grid_coord(x as f32, ww, w8), grid_coord(y as f32, hh, h8));
+        // Keypoint positions in the resized image: whole pixels, or refined.
+        let pos: Vec<[f32; 2]> = cand
+            .iter()
+            .map(|&(_, x, y)| {
+                let (dx, dy) = if self.config.subpixel { peak_offset(&maps.heatmap, ww, hh, x, y) } else { (0.0, 0.0) };
+                [x as f32 + dx, y as f32 + dy]
+            })
+            .collect();
+        descriptors.par_chunks_mut(XFEAT_DIM).zip(&pos).for_each(|(d, &[x, y])| {
+            let (ix, iy) = (grid_coord(x, ww, w8), grid_coord(y, hh, h8));
             let (x0, y0) = (ix.floor(), iy.floor());
             let (wx, wy) = (cubic_weights(ix - x0), cubic_weights(iy - y0));
             let (x0, y0) = (x0 as i64 - 1, y0 as i64 - 1);
@@ -657,10 +669,28 @@ impl XFeat {
             let n = d.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
             d.iter_mut().for_each(|v| *v /= n);
         });
-        let keypoints = cand.iter().map(|&(_, x, y)| [x as f32 * rw, y as f32 * rh]).collect();
+        let keypoints = pos.iter().map(|&[x, y]| [x * rw, y * rh]).collect();
         let scores = cand.iter().map(|c| c.0).collect();
         Ok(Features::new(keypoints, Some(scores), descriptors, XFEAT_DIM, (w as f32, h as f32)))
     }
+}
+
+/// Sub-pixel offset of the heatmap peak at whole pixel `(x, y)`: per axis, the vertex of
+/// the parabola through the log-heat at −1, 0, +1 (a Gaussian fit), within ±0.5; 0 at the
+/// border or where the three values do not curve down.
+fn peak_offset(heat: &[f32], w: usize, h: usize, x: usize, y: usize) -> (f32, f32) {
+    let l = |xx: usize, yy: usize| heat[yy * w + xx].max(1e-30).ln();
+    let vertex = |a: f32, b: f32, c: f32| {
+        let curve = a - 2.0 * b + c;
+        if curve < 0.0 {
+            (0.5 * (a - c) / curve).clamp(-0.5, 0.5)
+        } else {
+            0.0
+        }
+    };
+    let dx = if x > 0 && x + 1 < w { vertex(l(x - 1, y), l(x, y), l(x + 1, y)) } else { 0.0 };
+    let dy = if y > 0 && y + 1 < h { vertex(l(x, y - 1), l(x, y), l(x, y + 1)) } else { 0.0 };
+    (dx, dy)
 }
 
 /// `InstanceNorm2d(1)`: zero mean, unit (biased) variance, eps 1e-5; sums in f64 over
@@ -759,5 +789,45 @@ mod tests {
         let err = xf.detect_and_compute(&img, None).expect_err("too small");
         assert!(err.to_string().contains("32×32"), "{err}");
         assert!(GrayImage::new(3, 3, vec![0.0; 8]).is_err());
+    }
+
+    #[test]
+    fn peak_offset_finds_the_vertex_of_a_gaussian() {
+        // A Gaussian peak at (10.3, 5.8) sampled on whole pixels: the log-parabola fit is
+        // exact for it.
+        let (w, h) = (20, 12);
+        let heat: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as f32, (i / w) as f32);
+                (-((x - 10.3).powi(2) + (y - 5.8).powi(2)) / 2.0).exp()
+            })
+            .collect();
+        let (dx, dy) = peak_offset(&heat, w, h, 10, 6);
+        assert!((dx - 0.3).abs() < 1e-4 && (dy + 0.2).abs() < 1e-4, "{dx} {dy}");
+        // Borders and flat neighbourhoods stay on the pixel.
+        assert_eq!(peak_offset(&heat, w, h, 0, 6), (0.0, peak_offset(&heat, w, h, 0, 6).1));
+        assert_eq!(peak_offset(&vec![0.5; w * h], w, h, 5, 5), (0.0, 0.0));
+    }
+
+    #[test]
+    fn subpixel_keypoints_stay_within_half_a_pixel_of_the_whole_ones() {
+        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../assets/sample/coffee_0.jpg");
+        let img = GrayImage::open(dir).expect("sample image");
+        let plain = XFeat::pretrained().expect("weights");
+        let config = XFeatConfig { subpixel: true, ..plain.config().clone() };
+        let refined = XFeat::pretrained().expect("weights").with_config(config);
+        let (a, b) = (plain.detect_and_compute(&img, Some(500)).expect("runs"), refined.detect_and_compute(&img, Some(500)).expect("runs"));
+        assert_eq!(a.len(), b.len());
+        assert_eq!(a.scores, b.scores, "scores and order do not change");
+        let (rw, rh) = (600.0 / 576.0, 400.0 / 384.0); // the image is resized to multiples of 32
+        let mut moved = 0;
+        for (p, q) in a.keypoints.iter().zip(&b.keypoints) {
+            assert!((p[0] - q[0]).abs() <= 0.5 * rw + 1e-4 && (p[1] - q[1]).abs() <= 0.5 * rh + 1e-4, "{p:?} {q:?}");
+            moved += usize::from(p != q);
+        }
+        assert!(moved > a.len() / 2, "only {moved} of {} keypoints refined", a.len());
+        for d in b.descriptors.chunks_exact(XFEAT_DIM) {
+            assert!((d.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-4);
+        }
     }
 }

@@ -44,6 +44,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="pretrained name, mnn, nn, ratio[:R] or a weights file (default paraformer-xfeat)")
     r.add_argument("--pairs", default="exhaustive", help="exhaustive, sequential:N or a pairs file (default exhaustive)")
     r.add_argument("--max-keypoints", type=int, default=2048, help="XFeat keypoints per image (default 2048)")
+    r.add_argument("--no-subpixel", dest="subpixel", action="store_false",
+                   help="whole-pixel keypoints, as the original XFeat (default: sub-pixel)")
+    r.add_argument("--seed", type=int, default=0, help="random seed of COLMAP's verification and mapping (default 0)")
     r.add_argument("--camera-mode", default="auto", choices=["auto", "single", "per_folder", "per_image"],
                    help="COLMAP camera sharing (default auto)")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -54,6 +57,8 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("images", type=Path, help="folder of photos")
     e.add_argument("features", type=Path, help="features.h5 to create or extend")
     e.add_argument("--max-keypoints", type=int, default=2048, help="keypoints per image (default 2048)")
+    e.add_argument("--no-subpixel", dest="subpixel", action="store_false",
+                   help="whole-pixel keypoints, as the original XFeat (default: sub-pixel)")
     e.add_argument("--overwrite", action="store_true", help="recompute images already in the file")
     e.add_argument("--quiet", action="store_true", help="no progress bar")
     _ray_args(e)
@@ -85,14 +90,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
         if a.command == "reconstruct":
             rec = reconstruct(a.images, a.out, matcher=a.matcher, pairs=a.pairs, max_keypoints=a.max_keypoints,
-                              camera_mode=a.camera_mode, progress=not a.quiet, verbose=a.verbose, backend=a.backend, **_ray_options(a))
+                              subpixel=a.subpixel, seed=a.seed, camera_mode=a.camera_mode, progress=not a.quiet, verbose=a.verbose, backend=a.backend, **_ray_options(a))
             summary = json.loads((a.out / "summary.json").read_text())
             print(json.dumps(summary, indent=1))
             if rec is None:
                 print("no model: COLMAP registered no image pair", file=sys.stderr)
                 return 2
         elif a.command == "extract":
-            extract(a.images, a.features, max_keypoints=a.max_keypoints, overwrite=a.overwrite,
+            extract(a.images, a.features, max_keypoints=a.max_keypoints, subpixel=a.subpixel, overwrite=a.overwrite,
                     progress=not a.quiet, backend=a.backend, **_ray_options(a))
         elif a.command == "pairs":
             pairs = pairs_from_spec(a.pairs, list_images(a.images))

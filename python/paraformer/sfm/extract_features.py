@@ -48,7 +48,7 @@ def _named(e: Exception, path: Path) -> Exception:
 
 
 def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int = 2048,
-            overwrite: bool = False, image_list: Optional[Sequence[str]] = None,
+            subpixel: bool = True, overwrite: bool = False, image_list: Optional[Sequence[str]] = None,
             num_workers: Optional[int] = None, as_half: bool = False, progress: bool = True,
             backend: str = "local", **ray_options) -> Path:
     """XFeat keypoints and descriptors of every image into hloc's ``features.h5`` layout.
@@ -61,6 +61,8 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
         image_dir: the folder of images (searched recursively).
         features_path: the h5 file to create or extend.
         max_keypoints: keep at most this many keypoints per image, best score first.
+        subpixel: sub-pixel keypoints (``paraformer.extract``'s ``subpixel``): on by
+            default here, where they feed triangulation and bundle adjustment.
         overwrite: recompute images already in the file.
         image_list: names relative to ``image_dir`` to extract (default: every image).
         num_workers: images in flight at once (default: 2; each uses the Rust thread pool).
@@ -87,7 +89,7 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
     if backend == "ray":
         from .ray_backend import extract_ray
 
-        return extract_ray(image_dir, features_path, todo, max_keypoints=max_keypoints,
+        return extract_ray(image_dir, features_path, todo, max_keypoints=max_keypoints, subpixel=subpixel,
                            as_half=as_half, progress=progress, **ray_options)
     if backend != "local":
         raise ValueError(f"backend: expected 'local' or 'ray', got {backend!r}")
@@ -98,7 +100,7 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
         raise ValueError(f"num_workers: expected a positive int, got {num_workers!r}")
 
     def one(name: str) -> dict:
-        return paraformer.extract(os.fspath(image_dir / name), max_keypoints=max_keypoints)
+        return paraformer.extract(os.fspath(image_dir / name), max_keypoints=max_keypoints, subpixel=subpixel)
 
     with ThreadPoolExecutor(workers) as pool, bar(len(todo), "extract", "img", progress) as pb, \
             open_h5(features_path, "a") as fd:

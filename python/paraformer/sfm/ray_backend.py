@@ -61,15 +61,16 @@ def _remote_args(threads: int) -> dict:
 class XFeatWorker:
     """A Ray Data actor: image names → XFeat features (flat little-endian buffers)."""
 
-    def __init__(self, image_dir: str, max_keypoints: int):
-        self.image_dir, self.max_keypoints = Path(image_dir), max_keypoints
+    def __init__(self, image_dir: str, max_keypoints: int, subpixel: bool = True):
+        self.image_dir, self.max_keypoints, self.subpixel = Path(image_dir), max_keypoints, subpixel
 
     def __call__(self, batch: dict) -> dict:
         import paraformer
 
         out: dict[str, list] = {"name": [], "keypoints": [], "descriptors": [], "scores": [], "image_size": []}
         for name in batch["name"]:
-            f = paraformer.extract(os.fspath(self.image_dir / str(name)), max_keypoints=self.max_keypoints)
+            f = paraformer.extract(os.fspath(self.image_dir / str(name)), max_keypoints=self.max_keypoints,
+                                   subpixel=self.subpixel)
             out["name"].append(str(name))
             for key in ("keypoints", "descriptors", "scores", "image_size"):
                 out[key].append(np.ascontiguousarray(f[key], "<f4").tobytes())
@@ -119,7 +120,7 @@ def _quiet_data(ray) -> None:
 
 
 def extract_ray(image_dir: Path, features_path: Path, names: Sequence[str], *, max_keypoints: int,
-                as_half: bool = False, progress: bool = True, address: Optional[str] = None,
+                subpixel: bool = True, as_half: bool = False, progress: bool = True, address: Optional[str] = None,
                 num_workers: Optional[int] = None, threads_per_worker: Optional[int] = None,
                 batch: int = 4) -> Path:
     """``extract`` on Ray: one XFeat per actor; the driver writes ``features_path``."""
@@ -128,7 +129,8 @@ def extract_ray(image_dir: Path, features_path: Path, names: Sequence[str], *, m
     workers, threads = _pool_options(ray, num_workers, threads_per_worker)
     ds = ray.data.from_items([{"name": n} for n in names], override_num_blocks=max(1, min(len(names), 4 * workers)))
     ds = ds.map_batches(XFeatWorker, fn_constructor_kwargs={"image_dir": os.fspath(image_dir),
-                                                            "max_keypoints": max_keypoints},
+                                                            "max_keypoints": max_keypoints,
+                                                            "subpixel": subpixel},
                         batch_size=batch, batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=workers),
                         **_remote_args(threads))
     with open_h5(features_path, "a") as fd:

@@ -71,20 +71,24 @@ def import_into_database(image_dir: Path, database: Path, names: list[str], feat
     return ids
 
 
-def verify(pycolmap, database: Path, pairs_path: Path) -> None:
+def verify(pycolmap, database: Path, pairs_path: Path, seed: Optional[int] = None) -> None:
     """pycolmap's geometric verification (two-view geometries) of the imported matches."""
-    opts = pycolmap.TwoViewGeometryOptions(ransac=dict(max_num_trials=20000, min_inlier_ratio=0.1))
+    ransac = dict(max_num_trials=20000, min_inlier_ratio=0.1)
+    if seed is not None:
+        ransac["random_seed"] = seed
+    opts = pycolmap.TwoViewGeometryOptions(ransac=ransac)
     pycolmap.verify_matches(database, pairs_path, options=opts)
 
 
 def map_incremental(pycolmap, database: Path, image_dir: Path, out_dir: Path,
-                    mapper_options: Optional[dict] = None):
+                    mapper_options: Optional[dict] = None, seed: Optional[int] = None):
     """Incremental mapping; the largest model goes to ``out_dir/sparse/0`` (COLMAP binary)."""
     models = out_dir / "models"
     if models.exists():
         shutil.rmtree(models)
     models.mkdir(parents=True)
-    opts = pycolmap.IncrementalPipelineOptions({"num_threads": min(multiprocessing.cpu_count(), 16),
+    seeded = {} if seed is None else {"random_seed": seed}
+    opts = pycolmap.IncrementalPipelineOptions({"num_threads": min(multiprocessing.cpu_count(), 16), **seeded,
                                                 **(mapper_options or {})})
     recs = pycolmap.incremental_mapping(database, image_dir, models, options=opts)
     if not recs:
@@ -111,7 +115,7 @@ def _colmap_logs(pycolmap, out_dir: Path, verbose: bool) -> None:
 def reconstruct_from_files(image_dir: PathLike, out_dir: PathLike, features_path: PathLike,
                            pairs_path: PathLike, matches_path: PathLike, *, camera_mode: str = "auto",
                            min_match_score: Optional[float] = None, mapper_options: Optional[dict] = None,
-                           timings: Optional[dict] = None, verbose: bool = False):
+                           seed: Optional[int] = 0, timings: Optional[dict] = None, verbose: bool = False):
     """hloc-format features, pairs and matches (ours or hloc's) → COLMAP model.
 
     Writes ``out_dir/database.db``, ``out_dir/sparse/0/`` and ``out_dir/summary.json``.
@@ -123,6 +127,8 @@ def reconstruct_from_files(image_dir: PathLike, out_dir: PathLike, features_path
         camera_mode: ``auto``, ``single``, ``per_folder`` or ``per_image`` (COLMAP's).
         min_match_score: drop matches scored at or below this before verification.
         mapper_options: ``pycolmap.IncrementalPipelineOptions`` fields.
+        seed: random seed of COLMAP's RANSAC and mapper (None: COLMAP's own, which varies
+            from run to run).
         timings: seconds of earlier stages, copied into the summary.
         verbose: show COLMAP's log on stderr (it always goes to ``out_dir/colmap.LOG.*``).
     Returns:
@@ -144,10 +150,10 @@ def reconstruct_from_files(image_dir: PathLike, out_dir: PathLike, features_path
                                matches_path, camera_mode, min_match_score)
     times["import_s"] = time.time() - t
     t = time.time()
-    verify(pycolmap, out_dir / "database.db", pairs_path)
+    verify(pycolmap, out_dir / "database.db", pairs_path, seed)
     times["verification_s"] = time.time() - t
     t = time.time()
-    rec = map_incremental(pycolmap, out_dir / "database.db", image_dir, out_dir, mapper_options)
+    rec = map_incremental(pycolmap, out_dir / "database.db", image_dir, out_dir, mapper_options, seed)
     times["mapping_s"] = time.time() - t
     summary: dict[str, Any] = {"images": len(ids), "pairs": len(pairs)}
     if rec is None:
@@ -164,9 +170,9 @@ def reconstruct_from_files(image_dir: PathLike, out_dir: PathLike, features_path
 
 
 def reconstruct(image_dir: PathLike, out_dir: PathLike, *, matcher: Any = "paraformer-xfeat",
-                pairs: Any = "exhaustive", max_keypoints: int = 2048, camera_mode: str = "auto",
+                pairs: Any = "exhaustive", max_keypoints: int = 2048, subpixel: bool = True, camera_mode: str = "auto",
                 min_match_score: Optional[float] = None, mapper_options: Optional[dict] = None,
-                batch: int = 32, progress: bool = True, verbose: bool = False, backend: str = "local",
+                seed: Optional[int] = 0, batch: int = 32, progress: bool = True, verbose: bool = False, backend: str = "local",
                 **ray_options):
     """A folder of photos → a COLMAP reconstruction: XFeat, pairs, matching, database import,
     pycolmap's geometric verification and incremental mapping.
@@ -182,9 +188,11 @@ def reconstruct(image_dir: PathLike, out_dir: PathLike, *, matcher: Any = "paraf
         matcher: pretrained name, ``mnn``/``nn``/``ratio[:R]``, a weights file or a ``Matcher``.
         pairs: ``"exhaustive"``, ``"sequential:N"``, a pairs file or a list of name pairs.
         max_keypoints: XFeat keypoints per image.
+        subpixel: sub-pixel XFeat keypoints (see ``extract``).
         camera_mode: ``auto``, ``single``, ``per_folder`` or ``per_image``.
         min_match_score: drop matches scored at or below this.
         mapper_options: ``pycolmap.IncrementalPipelineOptions`` fields.
+        seed: random seed of COLMAP's RANSAC and mapper (None: COLMAP's own).
         batch: pairs per ``match_many`` call.
         progress: show progress bars.
         verbose: show COLMAP's log on stderr (it always goes to ``out_dir/colmap.LOG.*``).
@@ -202,7 +210,7 @@ def reconstruct(image_dir: PathLike, out_dir: PathLike, *, matcher: Any = "paraf
     out_dir.mkdir(parents=True, exist_ok=True)
     times: dict[str, float] = {}
     t = time.time()
-    extract(image_dir, out_dir / "features.h5", max_keypoints=max_keypoints, progress=progress,
+    extract(image_dir, out_dir / "features.h5", max_keypoints=max_keypoints, subpixel=subpixel, progress=progress,
             backend=backend, **ray_options)
     times["extract_s"] = time.time() - t
     unknown = sorted({n for p in pairs_from_spec(pairs, names) for n in p} - set(names))
@@ -224,7 +232,7 @@ def reconstruct(image_dir: PathLike, out_dir: PathLike, *, matcher: Any = "paraf
     return reconstruct_from_files(image_dir, out_dir, out_dir / "features.h5", out_dir / "pairs.txt",
                                   out_dir / "matches.h5", camera_mode=camera_mode,
                                   min_match_score=min_match_score, mapper_options=mapper_options,
-                                  timings=times, verbose=verbose)
+                                  seed=seed, timings=times, verbose=verbose)
 
 
 __all__ = ["reconstruct", "reconstruct_from_files", "import_into_database", "PYCOLMAP_SUPPORTED"]
