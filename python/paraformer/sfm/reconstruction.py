@@ -128,7 +128,7 @@ def reconstruct_from_files(image_dir: PathLike, out_dir: PathLike, features_path
         min_match_score: drop matches scored at or below this before verification.
         mapper_options: ``pycolmap.IncrementalPipelineOptions`` fields.
         seed: random seed of COLMAP's RANSAC and mapper (None: COLMAP's own, which varies
-            from run to run).
+            from run to run; seeded runs can still differ slightly with several threads).
         timings: seconds of earlier stages, copied into the summary.
         verbose: show COLMAP's log on stderr (it always goes to ``out_dir/colmap.LOG.*``).
     Returns:
