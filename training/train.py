@@ -59,7 +59,7 @@ def nll_loss(logp: torch.Tensor, gt0: torch.Tensor, gt1: torch.Tensor) -> torch.
     keypoints of both images; ignored keypoints (−2) are left out."""
     b = logp.shape[0]
     pos = gt0 >= 0
-    bi = torch.arange(b)[:, None].expand_as(gt0)
+    bi = torch.arange(b, device=gt0.device)[:, None].expand_as(gt0)
     pos_ll = logp[:, :-1, :][bi[pos], torch.nonzero(pos)[:, 1], gt0[pos]]
     neg_ll = torch.cat([logp[:, :-1, -1][gt0 == -1], logp[:, -1, :-1][gt1 == -1]])
     pos_term = -pos_ll.mean() if pos_ll.numel() else logp.new_zeros(())
@@ -197,6 +197,9 @@ def main() -> None:
     ap.add_argument("--val-pairs", type=int, default=256, help="holdout pairs per validation")
     ap.add_argument("--validate-only", action="store_true",
                     help="validate the run's checkpoint once, append it to log.jsonl and exit")
+    ap.add_argument("--init", default=None,
+                    help="a run that has no checkpoint yet starts from these weights (a train.py or train_gpu.py "
+                         "checkpoint: its EMA weights), e.g. to fine-tune the GPU run on real pairs")
     ap.add_argument("--fixed-pool", default=None,
                     help="read this pre-generated pool (kept, no generator): short comparison runs")
     args = ap.parse_args()
@@ -233,6 +236,11 @@ def main() -> None:
         spent, best = state["train_s"], state["best"]
         rng.bit_generator.state = state["rng"]
         print(f"resumed at {pairs_seen} pairs, step {steps}, stream shard {cursor}", flush=True)
+    elif args.init:
+        init = torch.load(args.init, map_location="cpu", weights_only=False)
+        model.load_state_dict(init.get("ema", init["model"]))
+        ema.load_state_dict(model.state_dict())
+        print(f"initialised from {args.init} ({init.get('pairs')} pairs there)", flush=True)
     holdout = ensure_holdout(args.val_pairs)
     if args.validate_only:
         v = validate(ema, holdout, 512, args.val_threshold, auc=False)

@@ -29,7 +29,9 @@ def ground_truth(kpts0, kpts1, proj0, proj1, threshold: float = 3.0, unmatched_f
     n = kpts1.shape[1]
     known0 = torch.isfinite(proj0).all(-1)
     known1 = torch.isfinite(proj1).all(-1)
-    inf = torch.tensor(float("inf"), dtype=kpts0.dtype)
+    dev = kpts0.device
+    far = far.to(dev)
+    inf = torch.tensor(float("inf"), dtype=kpts0.dtype, device=dev)
     fwd = torch.cdist(torch.nan_to_num(proj0, nan=0.0), kpts1)
     bwd = torch.cdist(kpts0, torch.nan_to_num(proj1, nan=0.0))
     fwd = torch.where(known0[:, :, None], fwd, inf)
@@ -37,17 +39,18 @@ def ground_truth(kpts0, kpts1, proj0, proj1, threshold: float = 3.0, unmatched_f
     both = known0[:, :, None] & known1[:, None, :]
     d = torch.where(both, torch.maximum(fwd, bwd), torch.minimum(fwd, bwd))
     if m == 0 or n == 0:
-        return (torch.full((b, m), UNMATCHED, dtype=torch.long), torch.full((b, n), UNMATCHED, dtype=torch.long))
+        return (torch.full((b, m), UNMATCHED, dtype=torch.long, device=dev),
+                torch.full((b, n), UNMATCHED, dtype=torch.long, device=dev))
     d0, j0 = d.min(2)
     d1, i1 = d.min(1)
-    ar0 = torch.arange(m)[None].expand(b, m)
+    ar0 = torch.arange(m, device=dev)[None].expand(b, m)
     mutual0 = i1.gather(1, j0) == ar0
     pos0 = mutual0 & (d0 < threshold)
-    m0 = torch.full((b, m), IGNORED, dtype=torch.long)
+    m0 = torch.full((b, m), IGNORED, dtype=torch.long, device=dev)
     m0 = torch.where(pos0, j0, m0)
     m0 = torch.where((d0 >= far) & known0, torch.full_like(m0, UNMATCHED), m0)
-    m1 = torch.full((b, n), IGNORED, dtype=torch.long)
-    ar1 = torch.arange(n)[None].expand(b, n)
+    m1 = torch.full((b, n), IGNORED, dtype=torch.long, device=dev)
+    ar1 = torch.arange(n, device=dev)[None].expand(b, n)
     pos1 = (j0.gather(1, i1) == ar1) & (d1 < threshold)
     m1 = torch.where(pos1, i1, m1)
     m1 = torch.where((d1 >= far) & known1, torch.full_like(m1, UNMATCHED), m1)

@@ -325,6 +325,8 @@ def _sinkhorn_potentials(z, log_mu, log_nu, iters: int):
     v = torch.zeros_like(log_nu)
     if iters <= 0:
         return u, v
+    if z.is_cuda:
+        return _sinkhorn_potentials_torch(z, log_mu, log_nu, iters)
     r = z.amax(2, keepdim=True)
     c = (z - r).amax(1, keepdim=True)
     # numpy's batched matrix–vector product is ~8x faster than torch.bmm's on CPU here.
@@ -339,6 +341,31 @@ def _sinkhorn_potentials(z, log_mu, log_nu, iters: int):
         us = torch.from_numpy(np.log(a)).to(z) - r[..., 0]
         vs = torch.from_numpy(np.log(bvec)).to(z) - c[:, 0, :]
     if torch.isfinite(us).all() and torch.isfinite(vs).all():
+        return us, vs
+    for _ in range(iters):
+        u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)
+        v = log_nu - torch.logsumexp(z + u[:, :, None], dim=1)
+    return u, v
+
+
+@torch.no_grad()
+def _sinkhorn_potentials_torch(z, log_mu, log_nu, iters: int):
+    """``_sinkhorn_potentials`` in torch on any device (a GPU: the kernel is read twice per
+    iteration instead of the log domain's many passes)."""
+    u = torch.zeros_like(log_mu)
+    v = torch.zeros_like(log_nu)
+    if iters <= 0:
+        return u, v
+    r = z.amax(2, keepdim=True)
+    c = (z - r).amax(1, keepdim=True)
+    k = (z - r - c).exp()
+    mu, nu = log_mu.exp(), log_nu.exp()
+    b = c[:, 0, :].exp()
+    for _ in range(iters):
+        a = mu / torch.bmm(k, b[..., None])[..., 0]
+        b = nu / torch.bmm(k.transpose(1, 2), a[..., None])[..., 0]
+    us, vs = a.log() - r[..., 0], b.log() - c[:, 0, :]
+    if bool(torch.isfinite(us).all() & torch.isfinite(vs).all()):
         return us, vs
     for _ in range(iters):
         u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)

@@ -1,0 +1,71 @@
+"""Validates weight snapshots (``train_gpu.py``'s ``<name>_snapshots.pt``, or ``train.py`` /
+``train_gpu.py`` checkpoints) on the holdout that ``train.py`` validates on, so that runs
+on other machines join the same learning curve.
+
+    python training/validate_snapshots.py SNAPSHOTS_OR_CKPT... --log training/checkpoints/NAME/log.jsonl \\
+        [--offset 70006] [--tag gpu]
+
+Each snapshot becomes one ``log.jsonl`` record (``pairs`` = pairs seen, plus ``--offset``
+for a run that started from another one's weights), read by ``plot_curves.py``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import torch
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from paraformer_train.model import Matcher  # noqa: E402
+from train import ensure_holdout, validate  # noqa: E402
+
+
+def snapshots(path: str) -> list[tuple[int, dict, dict, dict]]:
+    """(pairs, config, EMA state, extra fields) of every snapshot in a file."""
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    if "ema" in blob and "pairs" in blob:  # a checkpoint: its EMA weights
+        m = Matcher_from_args(blob["args"])
+        return [(blob["pairs"], m.config, blob["ema"], {"steps": blob.get("steps")})]
+    return [(p, s["config"], s["ema"], {"steps": s.get("steps"), "train_s": s.get("train_s")})
+            for p, s in sorted(blob.items())]
+
+
+def Matcher_from_args(args: dict) -> Matcher:  # noqa: N802 (a constructor in all but name)
+    from train import preset
+
+    cfg = preset(args["preset"], args["dim"], args["depth"], args["heads"]) | {"sinkhorn_iterations": args["sinkhorn"]}
+    return Matcher(cfg)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("files", nargs="+")
+    ap.add_argument("--log", required=True, help="log.jsonl to append the records to")
+    ap.add_argument("--offset", type=int, default=0, help="pairs the run had seen before (its initial weights)")
+    ap.add_argument("--tag", default=None, help="a field 'run' in each record")
+    ap.add_argument("--threshold", type=float, default=0.2)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    holdout = ensure_holdout(256)
+    os.makedirs(os.path.dirname(os.path.abspath(args.log)), exist_ok=True)
+    for path in args.files:
+        for pairs, config, state, extra in snapshots(path):
+            model = Matcher(config)
+            model.load_state_dict({k: v.float() for k, v in state.items()})
+            model.eval()
+            v = validate(model, holdout, 512, args.threshold, auc=False)
+            v |= validate(model, holdout, 2048, args.threshold, auc=True)
+            rec = {"pairs": pairs + args.offset, "weights": "ema"} | {k: x for k, x in extra.items() if x is not None} | v
+            if args.tag:
+                rec["run"] = args.tag
+            with open(args.log, "a") as f:
+                f.write(json.dumps(rec) + "\n")
+            print(json.dumps(rec), flush=True)
+
+
+if __name__ == "__main__":
+    main()
