@@ -136,3 +136,47 @@ def test_corner_error_is_inf_not_an_exception_on_bad_fits():
 def test_rgbd_split_names_a_bad_split():
     with pytest.raises(ValueError, match="split"):
         rgbd.split_pairs([], "test", "/tmp")
+
+
+def test_gpu_stream_warp_equals_opencv():
+    """train_gpu's grid_sample warp against cv2.warpPerspective (bilinear, reflected
+    borders) on a textured photo: OpenCV rounds to uint8 and uses fixed-point weights, so
+    within 1 grey level at the 99th percentile."""
+    import cv2
+    from train_gpu import warp_perspective
+
+    rng = np.random.default_rng(5)
+    photo = cv2.GaussianBlur(rng.integers(0, 256, (400, 560)).astype(np.uint8), (5, 5), 1.5)
+    hm = data.sample_patch((560, 400), (320, 240), 0.7, rng)
+    ours = warp_perspective(torch.from_numpy(photo).float()[None, None], hm, 320, 240)[0, 0].numpy()
+    ref = cv2.warpPerspective(photo, hm, (320, 240), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    err = np.abs(ours - ref.astype(np.float32))
+    assert ours.shape == (240, 320)
+    assert np.percentile(err, 99) <= 1.0 and err.mean() < 0.5
+
+
+def test_gpu_stream_projection_equals_apply_h():
+    from train_gpu import project
+
+    rng = np.random.default_rng(6)
+    h = np.array([[0.9, 0.1, 5.0], [-0.05, 1.1, -3.0], [2e-4, -1e-4, 1.0]])
+    pts = rng.uniform(0, 600, (2, 50, 2)).astype(np.float32)
+    ours = project(torch.from_numpy(np.stack([h, h])), torch.from_numpy(pts)).numpy()
+    for b in range(2):
+        np.testing.assert_allclose(ours[b], data.apply_h(h, pts[b]), rtol=1e-5, atol=1e-3)
+
+
+def test_torch_scaling_domain_sinkhorn_equals_the_log_domain():
+    """The potentials the GPU trainer computes without autograd (scaling domain, torch)
+    against the log-domain iterations of SPEC §8."""
+    from paraformer_train import model as m
+
+    torch.manual_seed(0)
+    for b, rows, cols in [(2, 40, 55), (1, 300, 280)]:
+        z, log_mu, log_nu, _ = m._couplings(torch.randn(b, rows, cols) * 3, torch.tensor(1.0))
+        u, v = m._sinkhorn_potentials_torch(z, log_mu, log_nu, 30)
+        ul, vl = torch.zeros_like(log_mu), torch.zeros_like(log_nu)
+        for _ in range(30):
+            ul = log_mu - torch.logsumexp(z + vl[:, None, :], dim=2)
+            vl = log_nu - torch.logsumexp(z + ul[:, :, None], dim=1)
+        assert torch.allclose(u, ul, atol=1e-4) and torch.allclose(v, vl, atol=1e-4)

@@ -55,6 +55,23 @@ MODELS = {
 SINKHORN = 50
 
 
+def warp_perspective(photo: torch.Tensor, hm: np.ndarray, ow: int, oh: int, grids: dict | None = None) -> torch.Tensor:
+    """cv2.warpPerspective of ``photo`` ``[1, 1, h, w]`` (bilinear, reflected borders) into an
+    ``ow × oh`` view: view pixel → photo pixel by H⁻¹, on the photo's device. ``grids``
+    caches the view's pixel grid per size."""
+    grids = {} if grids is None else grids
+    dev = photo.device
+    if (ow, oh) not in grids:
+        ys, xs = torch.meshgrid(torch.arange(oh, dtype=torch.float64), torch.arange(ow, dtype=torch.float64), indexing="ij")
+        grids[(ow, oh)] = torch.stack([xs, ys, torch.ones_like(xs)], -1).reshape(-1, 3).to(dev)
+    _, _, h, w = photo.shape
+    src = grids[(ow, oh)] @ torch.from_numpy(np.linalg.inv(hm)).to(dev).T
+    src = src[:, :2] / src[:, 2:3]
+    scale = torch.tensor([2.0 / (w - 1), 2.0 / (h - 1)], dtype=torch.float64, device=dev)
+    g = (src * scale - 1.0).float().reshape(1, oh, ow, 2)
+    return F.grid_sample(photo, g, mode="bilinear", padding_mode="reflection", align_corners=True)
+
+
 class GpuPairs:
     """Synthetic homography pairs made on ``device``; pair batch ``index`` of stream ``seed``
     is seeded by ``(seed, index)`` (bit-exact only on the same hardware)."""
@@ -84,22 +101,8 @@ class GpuPairs:
         self.jpeg_gpu = None  # decided at the first JPEG batch
         self.pool = ThreadPoolExecutor(8)
 
-    def _grid(self, ow: int, oh: int) -> torch.Tensor:
-        if (ow, oh) not in self.grids:
-            ys, xs = torch.meshgrid(torch.arange(oh, dtype=torch.float64), torch.arange(ow, dtype=torch.float64),
-                                    indexing="ij")
-            self.grids[(ow, oh)] = torch.stack([xs, ys, torch.ones_like(xs)], -1).reshape(-1, 3).to(self.device)
-        return self.grids[(ow, oh)]
-
     def _warp(self, photo: torch.Tensor, hm: np.ndarray, ow: int, oh: int) -> torch.Tensor:
-        """cv2.warpPerspective (bilinear, reflected borders): view pixel → photo pixel by H⁻¹."""
-        _, _, h, w = photo.shape
-        inv = torch.from_numpy(np.linalg.inv(hm)).to(self.device)
-        src = self._grid(ow, oh) @ inv.T
-        src = src[:, :2] / src[:, 2:3]
-        scale = torch.tensor([2.0 / (w - 1), 2.0 / (h - 1)], dtype=torch.float64, device=self.device)
-        g = (src * scale - 1.0).float().reshape(1, oh, ow, 2)
-        return F.grid_sample(photo, g, mode="bilinear", padding_mode="reflection", align_corners=True)
+        return warp_perspective(photo, hm, ow, oh, self.grids)
 
     def _jpeg(self, x: torch.Tensor, idx: np.ndarray, quality: np.ndarray) -> torch.Tensor:
         """JPEG round trip of ``x[idx]`` (uint8 values in float): nvJPEG through torchvision
