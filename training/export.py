@@ -15,6 +15,10 @@ mean of the homography AUC@5px and the mean pose AUC.
 
     python training/export.py --run training/runs/paraformer-xfeat --name paraformer-xfeat \
         --out crates/paraformer/weights/paraformer-xfeat.safetensors
+    # a committed checkpoint (e.g. the GPU run's) as the candidate:
+    python training/export.py --from-checkpoint training/checkpoints/gpu/paraformer-xfeat.pt \
+        --run training/runs/paraformer-xfeat-gpu --name paraformer-xfeat-gpu \
+        --out training/runs/paraformer-xfeat-gpu/calibrated.safetensors
 """
 from __future__ import annotations
 
@@ -97,11 +101,25 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--report", help="calibration JSON (default training/results/<name>_calibration.json)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--from-checkpoint", metavar="CKPT",
+                    help="first write CKPT's EMA weights (a train.py or train_gpu.py checkpoint) to "
+                         "<run>/last.safetensors, the candidate file")
     args = ap.parse_args()
     os.environ.setdefault("RAYON_NUM_THREADS", str(args.threads))
     import paraformer
     from paraformer_train import evalsets as ev
     from paraformer_train.io import load_safetensors, save_safetensors
+
+    if args.from_checkpoint:
+        import torch
+        from validate_snapshots import Matcher_from_args
+
+        state = torch.load(args.from_checkpoint, map_location="cpu", weights_only=False)
+        model = Matcher_from_args(state["args"])
+        model.load_state_dict(state.get("ema", state["model"]))
+        os.makedirs(args.run, exist_ok=True)
+        save_safetensors(model.eval(), os.path.join(args.run, "last.safetensors"))
+        args.weights = ["last.safetensors"]
 
     t0 = time.time()
     hom = holdout_homography_pairs(args.holdout, args.keypoints)
