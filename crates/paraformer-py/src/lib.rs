@@ -574,17 +574,26 @@ fn pretrained_names() -> Vec<&'static str> {
     paraformer::matcher::PRETRAINED.iter().map(|p| p.0).collect()
 }
 
-/// The embedded XFeat network, loaded on first use.
-/// `subpixel`: the instance that refines keypoints (`XFeatConfig::subpixel`).
+/// The embedded XFeat network, loaded once on first use.
+/// `subpixel`: the instance that refines keypoints (`XFeatConfig::subpixel`); both
+/// instances share the one network (`XFeat` clones share their weights).
 fn xfeat(subpixel: bool) -> PyResult<&'static XFeat> {
-    static XFEAT: [std::sync::OnceLock<XFeat>; 2] = [std::sync::OnceLock::new(), std::sync::OnceLock::new()];
-    let cell = &XFEAT[subpixel as usize];
-    if let Some(x) = cell.get() {
-        return Ok(x);
+    static PLAIN: std::sync::OnceLock<XFeat> = std::sync::OnceLock::new();
+    static SUBPIXEL: std::sync::OnceLock<XFeat> = std::sync::OnceLock::new();
+    let plain = match PLAIN.get() {
+        Some(x) => x,
+        None => {
+            let x = XFeat::pretrained().map_err(to_py_err)?;
+            PLAIN.get_or_init(|| x)
+        }
+    };
+    if !subpixel {
+        return Ok(plain);
     }
-    let x = XFeat::pretrained().map_err(to_py_err)?;
-    let config = XFeatConfig { subpixel, ..x.config().clone() };
-    Ok(cell.get_or_init(|| x.with_config(config)))
+    Ok(SUBPIXEL.get_or_init(|| {
+        let config = XFeatConfig { subpixel: true, ..plain.config().clone() };
+        plain.clone().with_config(config)
+    }))
 }
 
 /// XFeat output as `(kpts_f32le, scores_f32le, desc_f32le, width, height)`.

@@ -11,6 +11,7 @@
 //! BatchNorm (eval mode, no affine) folded into the convolution before it.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
@@ -521,7 +522,8 @@ fn cubic_weights(t: f32) -> [f32; 4] {
 /// XFeat: an image in, keypoints with scores and 64-d descriptors out.
 #[derive(Debug, Clone)]
 pub struct XFeat {
-    net: XFeatModel,
+    /// Shared by clones: instances that differ only in detection settings hold one copy.
+    net: Arc<XFeatModel>,
     config: XFeatConfig,
 }
 
@@ -544,10 +546,10 @@ impl XFeat {
 
     /// Builds the network, failing with every missing or mis-shaped tensor at once.
     pub fn from_weights(weights: &Weights) -> Result<Self> {
-        Ok(Self { net: weights.build(XFeatModel::new)?, config: XFeatConfig::default() })
+        Ok(Self { net: Arc::new(weights.build(XFeatModel::new)?), config: XFeatConfig::default() })
     }
 
-    /// The same network with other detection settings.
+    /// The same network with other detection settings (a clone shares the weights).
     pub fn with_config(mut self, config: XFeatConfig) -> Self {
         self.config = config;
         self
@@ -557,7 +559,7 @@ impl XFeat {
     /// with the direct convolutions).
     #[doc(hidden)]
     pub fn without_direct_convolutions(mut self) -> Self {
-        let n = &mut self.net;
+        let n = Arc::make_mut(&mut self.net);
         let blocks = [&mut n.block1, &mut n.block2, &mut n.block3, &mut n.block4, &mut n.block5, &mut n.block_fusion, &mut n.heatmap_head, &mut n.keypoint_head];
         for conv in blocks.into_iter().flat_map(|b| b.iter_mut()).chain([&mut n.skip1]) {
             conv.direct = None;
