@@ -180,3 +180,26 @@ def test_torch_scaling_domain_sinkhorn_equals_the_log_domain():
             ul = log_mu - torch.logsumexp(z + vl[:, None, :], dim=2)
             vl = log_nu - torch.logsumexp(z + ul[:, :, None], dim=1)
         assert torch.allclose(u, ul, atol=1e-4) and torch.allclose(v, vl, atol=1e-4)
+
+
+def test_nll_loss_equals_the_indexed_definition():
+    """The masked-sum loss against the definition written with boolean indexing: mean
+    −log p over positives and over unmatched keypoints of both images, ignored left out."""
+    from train import nll_loss
+
+    torch.manual_seed(1)
+    for b, m, n in [(2, 30, 25), (3, 7, 9)]:
+        logp = torch.randn(b, m + 1, n + 1, requires_grad=True)
+        gt0 = torch.randint(-2, n, (b, m))
+        gt1 = torch.randint(-2, 1, (b, n))
+        pos = [(-logp[bi, i, gt0[bi, i]]) for bi in range(b) for i in range(m) if gt0[bi, i] >= 0]
+        neg = [(-logp[bi, i, n]) for bi in range(b) for i in range(m) if gt0[bi, i] == -1]
+        neg += [(-logp[bi, m, j]) for bi in range(b) for j in range(n) if gt1[bi, j] == -1]
+        ref = 0.5 * torch.stack(pos).mean() + 0.5 * torch.stack(neg).mean()
+        got = nll_loss(logp, gt0, gt1)
+        assert torch.allclose(got, ref, atol=1e-6)
+        g_ref, = torch.autograd.grad(ref, logp)
+        g_got, = torch.autograd.grad(got, logp)
+        assert torch.allclose(g_got, g_ref, atol=1e-7)
+    # No positives and no unmatched: zero, not NaN.
+    assert nll_loss(torch.zeros(1, 3, 3), torch.full((1, 2), -2), torch.full((1, 2), -2)).item() == 0.0

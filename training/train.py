@@ -56,14 +56,13 @@ def preset(name: str, dim: int, depth: int, heads: int) -> dict:
 
 def nll_loss(logp: torch.Tensor, gt0: torch.Tensor, gt1: torch.Tensor) -> torch.Tensor:
     """Assignment NLL with dustbins: 0.5 · mean over positives + 0.5 · mean over unmatched
-    keypoints of both images; ignored keypoints (−2) are left out."""
-    b = logp.shape[0]
-    pos = gt0 >= 0
-    bi = torch.arange(b, device=gt0.device)[:, None].expand_as(gt0)
-    pos_ll = logp[:, :-1, :][bi[pos], torch.nonzero(pos)[:, 1], gt0[pos]]
-    neg_ll = torch.cat([logp[:, :-1, -1][gt0 == -1], logp[:, -1, :-1][gt1 == -1]])
-    pos_term = -pos_ll.mean() if pos_ll.numel() else logp.new_zeros(())
-    neg_term = -neg_ll.mean() if neg_ll.numel() else logp.new_zeros(())
+    keypoints of both images; ignored keypoints (−2) are left out. Masked sums, no
+    boolean indexing: no host synchronisation on a GPU."""
+    pos, un0, un1 = gt0 >= 0, gt0 == -1, gt1 == -1
+    pos_ll = logp[:, :-1, :].gather(2, gt0.clamp(min=0)[..., None])[..., 0]
+    pos_term = -torch.where(pos, pos_ll, 0.0).sum() / pos.sum().clamp(min=1)
+    neg_sum = torch.where(un0, logp[:, :-1, -1], 0.0).sum() + torch.where(un1, logp[:, -1, :-1], 0.0).sum()
+    neg_term = -neg_sum / (un0.sum() + un1.sum()).clamp(min=1)
     return 0.5 * pos_term + 0.5 * neg_term
 
 
