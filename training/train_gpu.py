@@ -44,7 +44,7 @@ sys.path.insert(0, HERE)
 from paraformer_train import data  # noqa: E402
 from paraformer_train.labels import ground_truth  # noqa: E402
 from paraformer_train.model import Matcher, log_optimal_transport_last_grad  # noqa: E402
-from train import nll_loss, preset  # noqa: E402
+from train import nll_loss, parse_schedule, preset  # noqa: E402
 
 # The models this script knows: (preset, dim, heads, depth, peak learning rate).
 MODELS = {
@@ -155,11 +155,7 @@ class GpuPairs:
                 blurred.append(i)
             elif rng.random() < 0.1:
                 k = int(rng.choice([5, 7, 9]))
-                line = np.zeros((k, k), np.float32)
-                line[k // 2] = 1.0 / k
-                m = cv2.getRotationMatrix2D((k / 2 - 0.5, k / 2 - 0.5), rng.uniform(0, 180), 1.0)
-                line = cv2.warpAffine(line, m, (k, k))
-                kernels[i, 4 - k // 2:5 + k // 2, 4 - k // 2:5 + k // 2] = line / max(line.sum(), 1e-6)
+                kernels[i, 4 - k // 2:5 + k // 2, 4 - k // 2:5 + k // 2] = data.motion_kernel(k, rng.uniform(0, 180))
                 blurred.append(i)
         if blurred:
             b = torch.tensor(blurred, device=dev)
@@ -306,16 +302,6 @@ class Trainee:
                              "train_s": self.train_s, "steps": self.steps}
         torch.save(snaps, self.snap_path + ".tmp")
         os.replace(self.snap_path + ".tmp", self.snap_path)
-
-
-def parse_schedule(text: str) -> list[tuple[int, int, float]]:
-    out = []
-    for part in text.split(","):
-        kb, p = part.split(":")
-        k, b = kb.split("x")
-        out.append((int(k), int(b), float(p)))
-    total = sum(p for _, _, p in out)
-    return [(k, b, p / total) for k, b, p in out]
 
 
 def main() -> None:

@@ -75,6 +75,15 @@ def sample_patch(photo_wh: tuple[int, int], out_wh: tuple[int, int], difficulty:
     return cv2.getPerspectiveTransform(quad.astype(np.float32), rect.astype(np.float32)).astype(np.float64)
 
 
+def motion_kernel(k: int, angle: float) -> np.ndarray:
+    """A ``k × k`` motion-blur kernel: a line through the centre at ``angle`` degrees, summing to 1."""
+    kernel = np.zeros((k, k), np.float32)
+    kernel[k // 2] = 1.0 / k
+    m = cv2.getRotationMatrix2D((k / 2 - 0.5, k / 2 - 0.5), angle, 1.0)
+    kernel = cv2.warpAffine(kernel, m, (k, k))
+    return kernel / max(kernel.sum(), 1e-6)
+
+
 def photometric(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
     """Brightness/contrast, gamma, blur, Gaussian noise, JPEG, each applied with probability."""
     x = img.astype(np.float32)
@@ -87,13 +96,8 @@ def photometric(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0
         k = int(rng.choice([3, 5, 7]))
         x = cv2.GaussianBlur(x, (k, k), rng.uniform(0.3, 1.8))
     elif rng.random() < 0.1:
-        # Motion blur along a random direction.
         k = int(rng.choice([5, 7, 9]))
-        kernel = np.zeros((k, k), np.float32)
-        kernel[k // 2] = 1.0 / k
-        m = cv2.getRotationMatrix2D((k / 2 - 0.5, k / 2 - 0.5), rng.uniform(0, 180), 1.0)
-        kernel = cv2.warpAffine(kernel, m, (k, k))
-        x = cv2.filter2D(x, -1, kernel / max(kernel.sum(), 1e-6))
+        x = cv2.filter2D(x, -1, motion_kernel(k, rng.uniform(0, 180)))
     if rng.random() < 0.4:
         x = x + rng.normal(0, rng.uniform(2, 12) * strength, x.shape)
     x = np.clip(x, 0, 255).astype(np.uint8)
