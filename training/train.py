@@ -54,6 +54,11 @@ def preset(name: str, dim: int, depth: int, heads: int) -> dict:
     raise ValueError(f"unknown preset {name!r}")
 
 
+def model_config(args: dict) -> dict:
+    """The model config of a run from its arguments (``MODEL_ARGS``; as saved in checkpoints)."""
+    return preset(args["preset"], args["dim"], args["depth"], args["heads"]) | {"sinkhorn_iterations": args["sinkhorn"]}
+
+
 def nll_loss(logp: torch.Tensor, gt0: torch.Tensor, gt1: torch.Tensor) -> torch.Tensor:
     """Assignment NLL with dustbins: 0.5 · mean over positives + 0.5 · mean over unmatched
     keypoints of both images; ignored keypoints (−2) are left out. Masked sums, no
@@ -216,7 +221,7 @@ def main() -> None:
         if changed:
             sys.exit(f"error: {ckpt} was trained with other model arguments: {changed}")
     torch.manual_seed(args.seed)
-    cfg = preset(args.preset, args.dim, args.depth, args.heads) | {"sinkhorn_iterations": args.sinkhorn}
+    cfg = model_config(vars(args))
     model = Matcher(cfg).train()
     # The exported weights: an exponential moving average of the trained ones, which smooths
     # the noise of small batches (batch 2-8) at a constant learning rate.

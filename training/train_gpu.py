@@ -44,7 +44,7 @@ sys.path.insert(0, HERE)
 from paraformer_train import data  # noqa: E402
 from paraformer_train.labels import ground_truth  # noqa: E402
 from paraformer_train.model import Matcher, log_optimal_transport_last_grad  # noqa: E402
-from train import nll_loss, parse_schedule, preset  # noqa: E402
+from train import model_config, nll_loss, parse_schedule  # noqa: E402
 
 # The models this script knows: (preset, dim, heads, depth, peak learning rate).
 MODELS = {
@@ -231,7 +231,7 @@ class Trainee:
         self.name, self.ema_decay = name, ema
         kind, dim, heads, depth, self.peak = MODELS[name]
         self.args = {"preset": kind, "dim": dim, "heads": heads, "depth": depth, "sinkhorn": SINKHORN}
-        cfg = preset(kind, dim, depth, heads) | {"sinkhorn_iterations": SINKHORN}
+        cfg = model_config(self.args)
         self.model = Matcher(cfg).to(device).train()
         self.ema = Matcher(cfg).to(device).eval()
         self.opt = torch.optim.AdamW(self.model.parameters(), lr=self.peak, weight_decay=0.01)

@@ -20,7 +20,7 @@ import torch
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 from paraformer_train.model import Matcher  # noqa: E402
-from train import ensure_holdout, validate  # noqa: E402
+from train import ensure_holdout, model_config, validate  # noqa: E402
 
 
 def snapshots(path: str) -> list[tuple[int, dict, dict, dict]]:
@@ -34,10 +34,7 @@ def snapshots(path: str) -> list[tuple[int, dict, dict, dict]]:
 
 
 def Matcher_from_args(args: dict) -> Matcher:  # noqa: N802 (a constructor in all but name)
-    from train import preset
-
-    cfg = preset(args["preset"], args["dim"], args["depth"], args["heads"]) | {"sinkhorn_iterations": args["sinkhorn"]}
-    return Matcher(cfg)
+    return Matcher(model_config(args))
 
 
 def main() -> None:

@@ -315,6 +315,15 @@ def _couplings(scores, bin_score):
     return z, log_mu, log_nu, norm
 
 
+def _log_domain_potentials(z, log_mu, log_nu, iters: int):
+    """SPEC §8 iterations in the log domain from u = v = 0: the fallback of the scaling domain."""
+    u, v = torch.zeros_like(log_mu), torch.zeros_like(log_nu)
+    for _ in range(iters):
+        u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)
+        v = log_nu - torch.logsumexp(z + u[:, :, None], dim=1)
+    return u, v
+
+
 @torch.no_grad()
 def _sinkhorn_potentials(z, log_mu, log_nu, iters: int):
     """``iters`` SPEC §8 iterations from u = v = 0 without autograd, in the scaling domain
@@ -342,10 +351,7 @@ def _sinkhorn_potentials(z, log_mu, log_nu, iters: int):
         vs = torch.from_numpy(np.log(bvec)).to(z) - c[:, 0, :]
     if torch.isfinite(us).all() and torch.isfinite(vs).all():
         return us, vs
-    for _ in range(iters):
-        u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)
-        v = log_nu - torch.logsumexp(z + u[:, :, None], dim=1)
-    return u, v
+    return _log_domain_potentials(z, log_mu, log_nu, iters)
 
 
 @torch.no_grad()
@@ -367,10 +373,7 @@ def _sinkhorn_potentials_torch(z, log_mu, log_nu, iters: int):
     us, vs = a.log() - r[..., 0], b.log() - c[:, 0, :]
     if bool(torch.isfinite(us).all() & torch.isfinite(vs).all()):
         return us, vs
-    for _ in range(iters):
-        u = log_mu - torch.logsumexp(z + v[:, None, :], dim=2)
-        v = log_nu - torch.logsumexp(z + u[:, :, None], dim=1)
-    return u, v
+    return _log_domain_potentials(z, log_mu, log_nu, iters)
 
 
 def log_optimal_transport_last_grad(scores, bin_score, iters: int, grad_iters: int = 1):
