@@ -200,7 +200,7 @@ def main() -> None:
     ap.add_argument("--scene", type=Path, default=STRECHA, help="folder with images/ and gt_dense_cameras/")
     ap.add_argument("--matchers", default="paraformer-xfeat,paraformer-u-xfeat,mnn",
                     help="comma-separated shipped names, baselines or weights files")
-    ap.add_argument("--max-keypoints", type=int, default=2048)
+    ap.add_argument("--max-keypoints", type=int, default=4096, help="as reconstruct's default")
     ap.add_argument("--no-colmap-sift", action="store_true", help="skip COLMAP's SIFT reference")
     ap.add_argument("--seeds", type=int, default=5,
                     help="COLMAP random seeds per matcher (verification and mapping are randomised; "

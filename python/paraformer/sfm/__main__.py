@@ -43,7 +43,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--matcher", default="paraformer-xfeat",
                    help="pretrained name, mnn, nn, ratio[:R] or a weights file (default paraformer-xfeat)")
     r.add_argument("--pairs", default="exhaustive", help="exhaustive, sequential:N or a pairs file (default exhaustive)")
-    r.add_argument("--max-keypoints", type=int, default=2048, help="XFeat keypoints per image (default 2048)")
+    r.add_argument("--max-keypoints", type=int, default=4096, help="XFeat keypoints per image (default 4096)")
     r.add_argument("--no-subpixel", dest="subpixel", action="store_false",
                    help="whole-pixel keypoints, as the original XFeat (default: sub-pixel)")
     r.add_argument("--seed", type=int, default=0, help="random seed of COLMAP's verification and mapping (default 0)")

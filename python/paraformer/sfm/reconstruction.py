@@ -170,7 +170,7 @@ def reconstruct_from_files(image_dir: PathLike, out_dir: PathLike, features_path
 
 
 def reconstruct(image_dir: PathLike, out_dir: PathLike, *, matcher: Any = "paraformer-xfeat",
-                pairs: Any = "exhaustive", max_keypoints: int = 2048, subpixel: bool = True, camera_mode: str = "auto",
+                pairs: Any = "exhaustive", max_keypoints: int = 4096, subpixel: bool = True, camera_mode: str = "auto",
                 min_match_score: Optional[float] = None, mapper_options: Optional[dict] = None,
                 seed: Optional[int] = 0, batch: int = 32, progress: bool = True, verbose: bool = False, backend: str = "local",
                 **ray_options):
@@ -187,7 +187,8 @@ def reconstruct(image_dir: PathLike, out_dir: PathLike, *, matcher: Any = "paraf
         out_dir: output folder.
         matcher: pretrained name, ``mnn``/``nn``/``ratio[:R]``, a weights file or a ``Matcher``.
         pairs: ``"exhaustive"``, ``"sequential:N"``, a pairs file or a list of name pairs.
-        max_keypoints: XFeat keypoints per image.
+        max_keypoints: XFeat keypoints per image (4096: on Strecha entry-P10 it took the median
+            rotation error from 0.6° at 2048 to 0.3°; ``extract`` alone defaults to 2048).
         subpixel: sub-pixel XFeat keypoints (see ``extract``).
         camera_mode: ``auto``, ``single``, ``per_folder`` or ``per_image``.
         min_match_score: drop matches scored at or below this.
