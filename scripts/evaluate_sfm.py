@@ -195,6 +195,32 @@ def over_seeds(rows: list[dict]) -> dict:
     return out
 
 
+def markdown(results: dict) -> str:
+    """The results as the README's table: medians over seeds, with the rotation range."""
+    head = ("| pipeline | registered (all seeds) | points | track length | reproj. px | rotation ° (range over seeds) "
+            "| centre m | pose AUC@1/2/5° | extract + match + map s |\n|---|---|---|---|---|---|---|---|---|\n")
+    lines = []
+    for label, r in results["rows"].items():
+        if label.startswith("XFeat + "):
+            sub = " (sub-pixel)" if results.get("subpixel") else ""
+            label = f"XFeat {results['max_keypoints']}{sub} + {label[len('XFeat + '):]}"
+        reg = r["registered_images_per_seed"]
+        n = results["images"]
+        registered = f"{min(reg)}/{n}" if min(reg) == max(reg) else f"{min(reg)}–{max(reg)}/{n}"
+        rot = [v for v in r["median_rotation_error_deg_per_seed"] if v is not None]
+        sec = r["seconds"]
+        extract = sec.get("extract_s", 0.0)
+        match = sec.get("match_s", 0.0) + sec.get("verification_s", 0.0) + sec.get("match_and_verify_s", 0.0)
+        mapping = sec.get("import_s", 0.0) + sec.get("mapping_s", 0.0)
+        fmt = lambda v, f: "–" if v is None else format(v, f)  # noqa: E731
+        lines.append(f"| {label} | {registered} | {r['points3D']:,} | {r['mean_track_length']:.2f} | "
+                     f"{r['mean_reprojection_error_px']:.2f} | **{fmt(r['median_rotation_error_deg_median_over_seeds'], '.2f')}** "
+                     f"({min(rot):.2f}–{max(rot):.2f}) | {fmt(r['median_centre_error_m_median_over_seeds'], '.3f')} | "
+                     f"{' / '.join(f'{a:.1f}' for a in r['pose_auc@1/2/5_median_over_seeds'])} | "
+                     f"{extract:.1f} + {match:.1f} + {mapping:.1f} |")
+    return head + "\n".join(lines) + "\n"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", type=Path, default=STRECHA, help="folder with images/ and gt_dense_cameras/")
@@ -208,6 +234,7 @@ def main() -> None:
     ap.add_argument("--subpixel", action=argparse.BooleanOptionalAction, default=True,
                     help="sub-pixel XFeat keypoints (paraformer.sfm's default)")
     ap.add_argument("--out", type=Path, default=None, help="JSON to write")
+    ap.add_argument("--markdown", type=Path, default=None, help="the table as markdown")
     ap.add_argument("--picture", type=Path, default=None, help="PNG: top view of the first matcher's model")
     a = ap.parse_args()
 
@@ -251,6 +278,9 @@ def main() -> None:
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(json.dumps(results, indent=1) + "\n")
+    if a.markdown:
+        a.markdown.parent.mkdir(parents=True, exist_ok=True)
+        a.markdown.write_text(markdown(results))
 
 
 if __name__ == "__main__":

@@ -66,6 +66,18 @@ def run_candidate(matcher, hom: list, pose: list, feats) -> dict:
             "pose": [go(feats(a), feats(b)) for a, b, *_ in pose]}
 
 
+def match_precision(hom: list, raw: list, t: float, px: float = 3.0) -> float:
+    """Percentage of the synthetic pairs' matches scored above ``t`` that land within ``px``
+    of the true homography's image of their keypoint (a diagnostic, not the objective)."""
+    good = total = 0
+    for (f0, f1, h), (m, s) in zip(hom, raw):
+        keep = (s > t) & (m >= 0)
+        p = np.c_[f0["keypoints"][keep], np.ones(keep.sum())] @ np.asarray(h, np.float64).T
+        err = np.linalg.norm(p[:, :2] / p[:, 2:] - f1["keypoints"][m[keep]], axis=1)
+        good, total = good + int((err < px).sum()), total + int(keep.sum())
+    return 100.0 * good / max(total, 1)
+
+
 def score_thresholds(raw: dict, hom: list, pose: list, feats) -> list[dict]:
     from paraformer import geometry as g
     from paraformer_train import evalsets as ev
@@ -75,11 +87,13 @@ def score_thresholds(raw: dict, hom: list, pose: list, feats) -> list[dict]:
         herr = [ev.homography_error(f0, f1, np.where(s > t, m, -1), h) for (f0, f1, h), (m, s) in zip(hom, raw["hom"])]
         perr = [ev.pose_error(feats(a), feats(b), np.where(s > t, m, -1), k0, k1, r, tt)
                 for (a, b, k0, k1, r, tt), (m, s) in zip(pose, raw["pose"])]
-        hauc = 100 * g.pose_auc(herr, [5])[0]
+        hauc135 = [100 * a for a in g.pose_auc(herr, [1, 3, 5])]
+        hauc = hauc135[2]
         pauc = [100 * a for a in g.pose_auc(perr, [5, 10, 20])]
         nm = float(np.mean([(s > t).sum() for m, s in raw["hom"]]))
-        rows.append({"threshold": t, "homography_auc5px": hauc, "pose_auc": pauc, "matches_synthetic": nm,
-                     "objective": (hauc + float(np.mean(pauc))) / 2})
+        rows.append({"threshold": t, "homography_auc5px": hauc, "homography_auc_1_3_5px": hauc135,
+                     "precision_synthetic": match_precision(hom, raw["hom"], t),
+                     "pose_auc": pauc, "matches_synthetic": nm, "objective": (hauc + float(np.mean(pauc))) / 2})
     return rows
 
 
@@ -139,7 +153,9 @@ def main() -> None:
             for row in score_thresholds(raw, hom, pose, feats):
                 row |= {"weights": name, "sinkhorn_iterations": iters}
                 report.append(row)
-                print(f"{name} iters {iters:3d} thr {row['threshold']:.2f}: hom AUC@5px {row['homography_auc5px']:5.1f}  "
+                print(f"{name} iters {iters:3d} thr {row['threshold']:.2f}: hom AUC@1/3/5px "
+                      f"{'/'.join(f'{a:.1f}' for a in row['homography_auc_1_3_5px'])}  "
+                      f"precision {row['precision_synthetic']:.1f}  "
                       f"pose AUC@5/10/20 {'/'.join(f'{a:.1f}' for a in row['pose_auc'])}  "
                       f"matches {row['matches_synthetic']:.0f}  objective {row['objective']:.2f}", flush=True)
     if not report:
