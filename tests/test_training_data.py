@@ -62,6 +62,17 @@ def test_unmatched_band_is_per_pair_and_only_widens():
     assert ground_truth(k, k, k + off, k - off, 3.0, 1.0)[0].tolist() == [[0, -1, -1]]
 
 
+def test_positive_radius_is_per_pair():
+    """Projections 1, 2 and 5 px off with positives within 3 px (pair 0) or 1.5 px (pair 1,
+    unmatched from 3 px): the 2 px keypoint is positive in pair 0 and ignored in pair 1."""
+    k = torch.tensor([[[0.0, 0.0], [100.0, 0.0], [200.0, 0.0]]])
+    off = torch.tensor([[[1.0, 0.0], [2.0, 0.0], [5.0, 0.0]]])
+    k2, p0, p1 = torch.cat([k, k]), torch.cat([k + off, k + off]), torch.cat([k - off, k - off])
+    m0, m1 = ground_truth(k2, k2, p0, p1, torch.tensor([3.0, 1.5]), torch.tensor([3.0, 3.0]))
+    assert m0.tolist() == [[0, 1, -1], [0, -2, -1]]
+    assert m1.tolist() == m0.tolist()
+
+
 def test_rgbd_projection_of_a_plane():
     """A fronto-parallel wall 2 m away seen by two cameras 0.2 m apart: projections are the
     known disparity shift; a box in front of the wall occludes what lies behind it."""

@@ -189,6 +189,9 @@ def main() -> None:
     ap.add_argument("--max-pending", type=int, default=24)
     ap.add_argument("--reuse", type=float, default=1.0, help="draws per pair before its shard is retired")
     ap.add_argument("--real-fraction", type=float, default=0.2)
+    ap.add_argument("--synthetic-positive-px", type=float, default=None,
+                    help="positive radius for synthetic pairs (default: 3 px like the evaluation; "
+                         "keypoints between it and 3 px are ignored)")
     ap.add_argument("--real-unmatched-from", type=float, default=8.0,
                     help="training labels of real pairs: unmatched only from this distance (px), ignored "
                          "between it and 3 px (pose/depth noise); validation keeps the evaluation rule")
@@ -287,7 +290,8 @@ def main() -> None:
                 gen = start_generator(args, work, reader.low_water())
             k, bsz, _ = schedule[int(rng.choice(len(schedule), p=[p for _, _, p in schedule]))]
             items = reader.draw(bsz)
-            bt = stream.collate(items, k, list(rng.random(bsz) < 0.5), real_unmatched_from=args.real_unmatched_from)
+            bt = stream.collate(items, k, list(rng.random(bsz) < 0.5), real_unmatched_from=args.real_unmatched_from,
+                                    synthetic_positive_px=args.synthetic_positive_px)
             for g_ in opt.param_groups:
                 g_["lr"] = lr_at(pairs_seen, args.pairs, args.warmup, args.lr)
             logp = sinkhorn(model.scores(bt), model.bin_score, args.sinkhorn)

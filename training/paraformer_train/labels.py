@@ -21,11 +21,13 @@ UNMATCHED, IGNORED = -1, -2
 
 def ground_truth(kpts0, kpts1, proj0, proj1, threshold: float = 3.0, unmatched_from=None):
     """``kpts0`` ``[B, M, 2]``, ``kpts1`` ``[B, N, 2]``, ``proj0`` (keypoints 0 in image 1)
-    ``[B, M, 2]``, ``proj1`` ``[B, N, 2]``, ``unmatched_from`` ``None`` (= threshold), a
-    float or ``[B]`` → ``(matches0 [B, M], matches1 [B, N])`` int64."""
+    ``[B, M, 2]``, ``proj1`` ``[B, N, 2]``, ``threshold`` a float or ``[B]`` (per pair),
+    ``unmatched_from`` ``None`` (= threshold), a float or ``[B]`` → ``(matches0 [B, M],
+    matches1 [B, N])`` int64."""
     b, m, _ = kpts0.shape
     far = torch.as_tensor(threshold if unmatched_from is None else unmatched_from, dtype=kpts0.dtype)
     far = torch.maximum(far, torch.as_tensor(threshold, dtype=kpts0.dtype)).reshape(-1, 1)
+    threshold = torch.as_tensor(threshold, dtype=kpts0.dtype).reshape(-1, 1).to(kpts0.device)
     n = kpts1.shape[1]
     known0 = torch.isfinite(proj0).all(-1)
     known1 = torch.isfinite(proj1).all(-1)

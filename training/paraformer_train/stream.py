@@ -127,12 +127,14 @@ class Shard:
 
 
 def collate(items: list[tuple[Shard, int]], k_max: int, swap: list[bool], threshold: float = 3.0,
-            real_unmatched_from: float | None = None) -> dict:
+            real_unmatched_from: float | None = None, synthetic_positive_px: float | None = None) -> dict:
     """A batch of pairs cut to the same keypoint counts: the top ``min(k_max, fewest)``
     keypoints by score per view (XFeat sorts by score, so this is XFeat's own top-k), labels
     from the projections. ``swap[b]`` exchanges the views of pair b. ``real_unmatched_from``:
     the distance from which a keypoint of a real (RGB-D) pair counts as unmatched (see
-    ``labels.ground_truth``; default: ``threshold``, the evaluation rule)."""
+    ``labels.ground_truth``; default: ``threshold``, the evaluation rule).
+    ``synthetic_positive_px``: a tighter positive radius for synthetic pairs (their keypoints
+    between it and ``threshold`` are ignored, neither positive nor unmatched)."""
     per = []
     for (shard, i), sw in zip(items, swap):
         v0, v1 = shard.views[2 * i], shard.views[2 * i + 1]
@@ -155,7 +157,13 @@ def collate(items: list[tuple[Shard, int]], k_max: int, swap: list[bool], thresh
     far = None
     if real_unmatched_from is not None:
         far = torch.tensor([real_unmatched_from if shard.kind[i] == 1 else threshold for shard, i in items])
-    out["gt0"], out["gt1"] = ground_truth(out["keypoints0"], out["keypoints1"], proj0, proj1, threshold, far)
+    positive: float | torch.Tensor = threshold
+    if synthetic_positive_px is not None:
+        positive = torch.tensor([threshold if shard.kind[i] == 1 else min(synthetic_positive_px, threshold)
+                                 for shard, i in items])
+        if far is None:
+            far = torch.full((len(items),), threshold)
+    out["gt0"], out["gt1"] = ground_truth(out["keypoints0"], out["keypoints1"], proj0, proj1, positive, far)
     return out
 
 
