@@ -58,3 +58,20 @@ def test_calibration_match_precision():
     assert abs(ex.match_precision([(f0, f1, h)], [(m, s)], 0.1) - 200 / 3) < 1e-9
     assert ex.match_precision([(f0, f1, h)], [(m, s)], 0.5) == 50.0
     assert ex.match_precision([(f0, f1, h)], [(m, s)], 0.95) == 0.0  # no match: 0, not a division by zero
+
+
+def test_seed_averaged_auc():
+    sys.path.insert(0, str(ROOT / "training"))
+    try:
+        from paraformer_train.evalsets import seed_averaged_auc
+    finally:
+        sys.path.remove(str(ROOT / "training"))
+    from paraformer import geometry as g
+
+    errors = [[0.5, 1.5], [2.0, float("inf")], [0.2, 0.4]]  # [pair][RANSAC seed]
+    mean, sd = seed_averaged_auc(errors, [1, 5])
+    per_seed = [np.array(g.pose_auc([e[s] for e in errors], [1, 5])) * 100 for s in range(2)]
+    assert np.allclose(mean, (per_seed[0] + per_seed[1]) / 2) and np.allclose(sd, np.abs(per_seed[0] - per_seed[1]) / 2)
+    assert per_seed[0][0] != per_seed[1][0]  # the seeds do differ here, so the mean is not one of them
+    one, zero = seed_averaged_auc([0.5, 2.0, 0.2], [1, 5])  # one seed: a flat list, the plain AUC
+    assert np.allclose(one, np.array(g.pose_auc([0.5, 2.0, 0.2], [1, 5])) * 100) and np.allclose(zero, 0)

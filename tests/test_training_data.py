@@ -214,3 +214,20 @@ def test_nll_loss_equals_the_indexed_definition():
         assert torch.allclose(g_got, g_ref, atol=1e-7)
     # No positives and no unmatched: zero, not NaN.
     assert nll_loss(torch.zeros(1, 3, 3), torch.full((1, 2), -2), torch.full((1, 2), -2)).item() == 0.0
+
+
+def test_init_from_a_weights_file_checks_the_architecture():
+    """`train.py --init` from the shipped weights file: its tensors when the run's model is
+    the file's, a named error (no half-loaded model) when the heads differ."""
+    from train import init_weights, model_config
+    from paraformer_train.model import Matcher
+
+    path = str(ROOT / "crates" / "paraformer" / "weights" / "paraformer-xfeat.safetensors")
+    args = {"preset": "paraformer", "dim": 64, "depth": 4, "heads": 4, "sinkhorn": 50}
+    model = Matcher(model_config(args))
+    state = init_weights(path, model.config)
+    model.load_state_dict(state)  # strict: every tensor present, shapes equal
+    assert torch.equal(model.state_dict()["bin_score"], state["bin_score"])
+    other = Matcher(model_config(args | {"heads": 2}))
+    with pytest.raises(SystemExit, match="num_heads"):
+        init_weights(path, other.config)

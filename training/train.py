@@ -59,6 +59,22 @@ def model_config(args: dict) -> dict:
     return preset(args["preset"], args["dim"], args["depth"], args["heads"]) | {"sinkhorn_iterations": args["sinkhorn"]}
 
 
+def init_weights(path: str, config: dict) -> dict:
+    """The state dict a run starts from: a checkpoint's EMA weights, or a weights file's
+    (e.g. the shipped ``paraformer-xfeat.safetensors``), whose architecture must be the run's."""
+    if path.endswith(".safetensors"):
+        from paraformer_train.io import load_safetensors
+
+        other = load_safetensors(path).config
+        keys = [k for k in config if k not in ("match_threshold", "sinkhorn_iterations")]
+        diff = {k: (other.get(k), config[k]) for k in keys if other.get(k) != config[k]}
+        if diff:
+            raise SystemExit(f"error: --init {path} has another architecture (file, run): {diff}")
+        return load_safetensors(path).state_dict()
+    init = torch.load(path, map_location="cpu", weights_only=False)
+    return init.get("ema", init["model"])
+
+
 def nll_loss(logp: torch.Tensor, gt0: torch.Tensor, gt1: torch.Tensor) -> torch.Tensor:
     """Assignment NLL with dustbins: 0.5 · mean over positives + 0.5 · mean over unmatched
     keypoints of both images; ignored keypoints (−2) are left out. Masked sums, no
@@ -244,10 +260,9 @@ def main() -> None:
         rng.bit_generator.state = state["rng"]
         print(f"resumed at {pairs_seen} pairs, step {steps}, stream shard {cursor}", flush=True)
     elif args.init:
-        init = torch.load(args.init, map_location="cpu", weights_only=False)
-        model.load_state_dict(init.get("ema", init["model"]))
+        model.load_state_dict(init_weights(args.init, model.config))
         ema.load_state_dict(model.state_dict())
-        print(f"initialised from {args.init} ({init.get('pairs')} pairs there)", flush=True)
+        print(f"initialised from {args.init}", flush=True)
     holdout = ensure_holdout(args.val_pairs)
     if args.validate_only:
         v = validate(ema, holdout, 512, args.val_threshold, auc=False)
