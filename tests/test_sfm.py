@@ -111,6 +111,17 @@ def test_extract_resumes_and_overwrites(images, tmp_path, monkeypatch):
     assert calls == []
     sfm.extract(images, path, max_keypoints=256, overwrite=True, progress=False)
     assert len(calls) == 3
+    # Other settings on a resumed file: an error naming both, not a silent mix of the two.
+    calls.clear()
+    with pytest.raises(ValueError, match='max_keypoints": 256.*max_keypoints": 512'):
+        sfm.extract(images, path, max_keypoints=512, progress=False)
+    with pytest.raises(ValueError, match="subpixel"):
+        sfm.extract(images, path, max_keypoints=256, subpixel=False, progress=False)
+    assert calls == []
+    sfm.extract(images, path, max_keypoints=512, overwrite=True, progress=False)
+    assert len(calls) == 3
+    sfm.extract(images, path, max_keypoints=512, progress=False)  # the new settings resume
+    assert len(calls) == 3
 
 
 def test_extract_bad_input(images, tmp_path):

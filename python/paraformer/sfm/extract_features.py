@@ -1,6 +1,7 @@
 """XFeat on every image of a folder into an hloc ``features.h5`` (resumable)."""
 from __future__ import annotations
 
+import json
 import os
 import warnings
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
@@ -9,6 +10,8 @@ from typing import Optional, Sequence
 
 from .io import PathLike, open_h5, list_names, write_features
 from .progress import bar
+
+FEATURES_ATTR = "paraformer_features"  # file attribute: the extraction settings (JSON)
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".pgm", ".ppm", ".pnm", ".pbm", ".bmp", ".tif", ".tiff", ".webp"}
 
@@ -54,7 +57,9 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
     """XFeat keypoints and descriptors of every image into hloc's ``features.h5`` layout.
 
     Images already in the file are skipped unless ``overwrite`` (an interrupted run resumes);
-    each image is written as soon as it is done. An unreadable image is skipped with a
+    each image is written as soon as it is done. A file written with other settings
+    (``max_keypoints``, ``subpixel``; its ``paraformer_features`` attribute) is a ValueError
+    unless ``overwrite``. An unreadable image is skipped with a
     warning naming it; ValueError when no image at all can be read.
 
     Args:
@@ -81,11 +86,22 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
     names = list_images(image_dir) if image_list is None else _check_names(image_dir, image_list)
     if not names:
         raise FileNotFoundError(f"image_dir: no images ({', '.join(sorted(IMAGE_SUFFIXES))}) under {image_dir}")
+    # The settings that shape the features: a resumed run must not mix them (a folder first
+    # extracted at 2048 keypoints would silently stay at 2048 when rerun at 4096).
+    tag = json.dumps({"extractor": "xfeat", "max_keypoints": max_keypoints, "subpixel": bool(subpixel)}, sort_keys=True)
     done = set() if overwrite else set(list_names(features_path))
+    if done:
+        with open_h5(features_path, "r") as fd:
+            old = fd.attrs.get(FEATURES_ATTR)
+        if old is not None and old != tag:
+            raise ValueError(f"features_path: {features_path} holds features extracted with {old}, not {tag}; "
+                             "pass overwrite=True (extract) or use another file or output folder")
     todo = [n for n in names if n not in done]
     features_path.parent.mkdir(parents=True, exist_ok=True)
     if not todo:
         return features_path
+    with open_h5(features_path, "a") as fd:
+        fd.attrs[FEATURES_ATTR] = tag
     if backend == "ray":
         from .ray_backend import extract_ray
 
