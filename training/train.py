@@ -65,12 +65,12 @@ def init_weights(path: str, config: dict) -> dict:
     if path.endswith(".safetensors"):
         from paraformer_train.io import load_safetensors
 
-        other = load_safetensors(path).config
+        other = load_safetensors(path)
         keys = [k for k in config if k not in ("match_threshold", "sinkhorn_iterations")]
-        diff = {k: (other.get(k), config[k]) for k in keys if other.get(k) != config[k]}
+        diff = {k: (other.config.get(k), config[k]) for k in keys if other.config.get(k) != config[k]}
         if diff:
             raise SystemExit(f"error: --init {path} has another architecture (file, run): {diff}")
-        return load_safetensors(path).state_dict()
+        return other.state_dict()
     init = torch.load(path, map_location="cpu", weights_only=False)
     return init.get("ema", init["model"])
 

@@ -154,13 +154,13 @@ def collate(items: list[tuple[Shard, int]], k_max: int, swap: list[bool], thresh
         "image_size1": torch.tensor(np.stack([p[3] for p in per])),
     }
     proj0, proj1 = stack(0, 3, m), stack(1, 3, n)
+    real = [shard.kind[i] == 1 for shard, i in items]
     far = None
     if real_unmatched_from is not None:
-        far = torch.tensor([real_unmatched_from if shard.kind[i] == 1 else threshold for shard, i in items])
+        far = torch.tensor([real_unmatched_from if r else threshold for r in real])
     positive: float | torch.Tensor = threshold
     if synthetic_positive_px is not None:
-        positive = torch.tensor([threshold if shard.kind[i] == 1 else min(synthetic_positive_px, threshold)
-                                 for shard, i in items])
+        positive = torch.tensor([threshold if r else min(synthetic_positive_px, threshold) for r in real])
         if far is None:
             far = torch.full((len(items),), threshold)
     out["gt0"], out["gt1"] = ground_truth(out["keypoints0"], out["keypoints1"], proj0, proj1, positive, far)
