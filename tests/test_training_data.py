@@ -4,6 +4,7 @@ Needs torch; skipped (with the reason printed) where it is not installed, as in 
 Checked against independent rules: the Rust core's homography ground truth (the evaluation
 rule) and a hand-built RGB-D scene with known geometry.
 """
+import json
 import sys
 from pathlib import Path
 
@@ -91,6 +92,57 @@ def test_rgbd_projection_of_a_plane():
     proj = rgbd.project(pts, depth_a, depth_b, K, pose_a, pose_b)
     assert proj[0, 0] == rgbd.OCCLUDED
     assert np.isnan(proj[1]).all()
+
+
+def test_register_depth_moves_a_wall_into_the_colour_camera():
+    """A wall 2 m away seen by a depth camera (f 585) and a colour camera 5 cm to its right
+    (f 525): the colour camera's depth is 2 m where the wall lands, each pixel at the place
+    its own ray meets the wall, and 0 where the depth camera saw nothing."""
+    k_d = np.array([[585.0, 0, 160], [0, 585.0, 120], [0, 0, 1]])
+    k_c = np.array([[525.0, 0, 160], [0, 525.0, 120], [0, 0, 1]])
+    t_cd = np.eye(4)
+    t_cd[0, 3] = -0.05  # colour camera 5 cm to the right: scene points at x - 0.05 in it
+    depth = np.full((240, 320), 2.0, np.float32)
+    depth[:, :40] = 0.0  # the left strip unseen by the depth camera
+    reg = rgbd.register_depth(depth, k_d, k_c, t_cd, (240, 320))
+    # colour pixel u sees x_c = (u - 160) z / 525; the depth camera saw that point at
+    # x_d = x_c + 0.05, i.e. u_d = 160 + 585 x_d / z
+    u = np.arange(320)
+    u_d = 160 + 585 * ((u - 160) * 2.0 / 525 + 0.05) / 2.0
+    covered = (u_d >= 41) & (u_d <= 318)  # a pixel inside the seen part on both sides
+    row = reg[120]
+    np.testing.assert_allclose(row[covered], 2.0, atol=1e-6)
+    assert (row[u_d < 38] == 0).all()
+
+
+def test_sequence_uses_a_fitted_colour_camera(tmp_path, monkeypatch):
+    """A 7-Scenes-layout sequence with a colour camera in COLOUR_CAMERAS: K and depth are the
+    colour camera's, poses are T_w_depth · T_depth_colour, the cache key names the fit, and
+    ``usable`` accepts a MISREGISTERED name only with a fit."""
+    import cv2
+
+    root = tmp_path / "7scenes_sample"
+    root.mkdir()
+    np.savetxt(root / "K.txt", [[585.0, 0, 160], [0, 585.0, 120], [0, 0, 1]])
+    cv2.imwrite(str(root / "frame-000000.color.jpg"), np.zeros((240, 320, 3), np.uint8))
+    cv2.imwrite(str(root / "frame-000000.depth.png"), np.full((240, 320), 2000, np.uint16))
+    np.savetxt(root / "frame-000000.pose.txt", np.eye(4))
+    cams = tmp_path / "cams.json"
+    monkeypatch.setattr(rgbd, "COLOUR_CAMERAS", str(cams))
+    assert not rgbd.usable(str(root))
+    raw = rgbd.Sequence(str(root))
+    assert raw.key == "7scenes_sample" and raw.K[0, 0] == 585
+    t_cd = np.eye(4)
+    t_cd[0, 3] = -0.05
+    k_c = [[525.0, 0, 160], [0, 525.0, 120], [0, 0, 1]]
+    cams.write_text(json.dumps({"7scenes_sample": {"K": k_c, "T_colour_from_depth": t_cd.tolist()}}))
+    assert rgbd.usable(str(root))
+    seq = rgbd.Sequence(str(root))
+    assert seq.K[0, 0] == 525 and seq.key.startswith("7scenes_sample_colour") and seq.key != raw.key
+    np.testing.assert_allclose(seq.poses[0][:3, 3], [0.05, 0, 0])  # the colour camera's centre
+    d = seq.depth(0)
+    assert d.shape == (240, 320) and d[120, 160] == pytest.approx(2.0)
+    assert rgbd.Sequence(str(root), colour_camera=False).K[0, 0] == 585
 
 
 def test_shard_round_trip_and_top_k_cut(tmp_path):

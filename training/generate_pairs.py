@@ -35,8 +35,8 @@ def main() -> None:
     ap.add_argument("--photos", nargs="+", default=[os.path.join(SHARED, "train", d) for d in
                                                     ("bsds500_train", "urban100", "sun80")])
     ap.add_argument("--rgbd", nargs="*", default=[p for p in sorted(glob.glob(os.path.join(SHARED, "rgbd", "*")))
-                                                  if os.path.basename(p) not in rgbd.MISREGISTERED],
-                    help="RGB-D sequence folders (default: all but rgbd.MISREGISTERED)")
+                                                  if rgbd.usable(p)],
+                    help="RGB-D sequence folders (default: all that rgbd.usable accepts)")
     ap.add_argument("--rgbd-split", choices=["train", "holdout"], default="train")
     ap.add_argument("--real-fraction", type=float, default=0.2)
     ap.add_argument("--cache", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "cache", "rgbd_pairs"))

@@ -78,11 +78,10 @@ def scannet_pairs(shared: str, size: tuple[int, int] = (640, 480)) -> list[tuple
 def rgbd_holdout_pairs(shared: str, cache: str, per_sequence: int = 24) -> list[tuple]:
     """Pose pairs from the held-out tail of each RGB-D sequence (never trained on): the pair
     lists of ``generate_pairs.py --rgbd-split holdout``, ``per_sequence`` spread evenly over
-    the covisibility order, hardest first (sequences of ``rgbd.MISREGISTERED`` left out)."""
-    from paraformer_train.rgbd import MISREGISTERED, split_pairs  # the trainer's own split
+    the covisibility order, hardest first (a sequence that ``rgbd.usable`` rejects left out)."""
+    from paraformer_train.rgbd import split_pairs, usable  # the trainer's own split
 
-    roots = sorted(p for p in glob.glob(os.path.join(shared, "rgbd", "*"))
-                   if os.path.isdir(p) and os.path.basename(p) not in MISREGISTERED)
+    roots = sorted(p for p in glob.glob(os.path.join(shared, "rgbd", "*")) if os.path.isdir(p) and usable(p))
     out = []
     for seq, pairs in split_pairs(roots, "holdout", cache):
         pairs = sorted(pairs, key=lambda p: p[2])

@@ -12,6 +12,7 @@ Projection codes per keypoint (``[K, 2]`` float32):
 from __future__ import annotations
 
 import glob
+import hashlib
 import json
 import os
 
@@ -24,14 +25,54 @@ DEPTH_TOLERANCE = 0.05  # relative depth agreement for "the same surface"
 # colour camera (focal ≈ 525, a few cm beside the depth camera) is not the depth camera
 # (K = 585) that K.txt and the poses describe, so reprojected keypoints miss by 10-50 px
 # (median distance of LighterGlue's matches to their reprojections; HoloLens: 2-6 px).
-# They are left out of training data and calibration.
+# Such a sequence is used only with a fitted colour camera (COLOUR_CAMERAS, written by
+# ``training/fit_rgbd_colour_camera.py``): its depth is then re-rendered into the colour frame.
 MISREGISTERED = ("7scenes_sample",)
+COLOUR_CAMERAS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "rgbd_colour_cameras.json")
+
+
+def colour_cameras(path: str | None = None) -> dict:
+    """Fitted colour cameras by sequence name: ``K`` (3×3) and ``T_colour_from_depth`` (4×4)."""
+    path = path or COLOUR_CAMERAS
+    if not os.path.exists(path):
+        return {}
+    with open(path) as f:
+        return json.load(f)
+
+
+def usable(root: str) -> bool:
+    """Whether a sequence's colour frames fit its depth and poses (as shipped, or fitted)."""
+    name = os.path.basename(os.path.normpath(root))
+    return name not in MISREGISTERED or name in colour_cameras()
+
+
+def register_depth(depth: np.ndarray, k_depth: np.ndarray, k_colour: np.ndarray,
+                   t_colour_from_depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A depth camera's map re-rendered in the colour camera: each valid depth pixel lands on
+    its nearest colour pixel, the nearest surface wins; metres along the colour camera's
+    axis, 0 where nothing lands (missing: its keypoints are ignored, not unmatched)."""
+    ys, xs = np.nonzero(depth > 0)
+    z = depth[ys, xs].astype(np.float64)
+    rays = np.linalg.solve(k_depth, np.stack([xs, ys, np.ones(len(xs))]).astype(np.float64))
+    x_c = t_colour_from_depth[:3, :3] @ (rays * z) + t_colour_from_depth[:3, 3:4]
+    front = x_c[2] > 1e-3
+    x_c = x_c[:, front]
+    uv = (k_colour @ x_c)[:2] / x_c[2]
+    u, v = np.round(uv[0]).astype(np.int64), np.round(uv[1]).astype(np.int64)
+    h, w = shape
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    out = np.full(h * w, np.inf)
+    np.minimum.at(out, v[inside] * w + u[inside], x_c[2, inside])
+    out[np.isinf(out)] = 0.0
+    return out.reshape(h, w).astype(np.float32)
 
 
 class Sequence:
     """Frames of one RGB-D sequence: colour paths, depth paths, K, camera-to-world poses."""
 
-    def __init__(self, root: str):
+    def __init__(self, root: str, colour_camera: bool = True):
+        """``colour_camera``: use the fitted colour camera of ``COLOUR_CAMERAS`` when the
+        sequence has one (K, poses and depth then describe the colour frames)."""
         self.root = root
         self.name = os.path.basename(os.path.normpath(root))
         self.K = np.loadtxt(os.path.join(root, "K.txt")).reshape(3, 3)
@@ -48,6 +89,21 @@ class Sequence:
         if len(poses) != len(self.images) or not self.images:
             raise ValueError(f"{root}: {len(self.images)} images but {len(poses)} poses")
         self.poses = poses.astype(np.float64)
+        self.k_depth, self.t_colour_from_depth = self.K, None
+        cal = colour_cameras().get(self.name) if colour_camera else None
+        if cal is not None:
+            self.K = np.asarray(cal["K"], np.float64).reshape(3, 3)
+            self.t_colour_from_depth = np.asarray(cal["T_colour_from_depth"], np.float64).reshape(4, 4)
+            # camera-to-world of the colour camera: T_w_depth · T_depth_colour
+            self.poses = self.poses @ np.linalg.inv(self.t_colour_from_depth)
+
+    @property
+    def key(self) -> str:
+        """Name for caches: the fitted colour camera's values change it."""
+        if self.t_colour_from_depth is None:
+            return self.name
+        vals = np.concatenate([self.K.ravel(), self.t_colour_from_depth.ravel()])
+        return f"{self.name}_colour{hashlib.sha1(np.round(vals, 6).tobytes()).hexdigest()[:8]}"
 
     def __len__(self) -> int:
         return len(self.images)
@@ -67,7 +123,10 @@ class Sequence:
         d = d.astype(np.float32)
         if self.invalid_depth is not None:
             d[d == self.invalid_depth] = 0
-        return d / 1000.0
+        d = d / 1000.0
+        if self.t_colour_from_depth is not None:
+            d = register_depth(d, self.k_depth, self.K, self.t_colour_from_depth, d.shape)
+        return d
 
 
 def project(pts: np.ndarray, depth_a: np.ndarray, depth_b: np.ndarray, K: np.ndarray,
@@ -121,7 +180,7 @@ def pair_list(seq: Sequence, frames: range, cache: str, max_gap: int = 40,
               overlap: tuple[float, float] = (0.2, 0.85)) -> list[tuple[int, int, float]]:
     """Frame pairs ``(a, b, covisibility)`` within ``frames`` whose mutual covisibility lies in
     ``overlap`` (cached as JSON: covisibility needs every depth map once)."""
-    key = f"{seq.name}_{frames.start}_{frames.stop}_{max_gap}_{overlap[0]}_{overlap[1]}.json"
+    key = f"{seq.key}_{frames.start}_{frames.stop}_{max_gap}_{overlap[0]}_{overlap[1]}.json"
     path = os.path.join(cache, key)
     if os.path.exists(path):
         return [tuple(p) for p in json.load(open(path))]
