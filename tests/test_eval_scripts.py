@@ -75,16 +75,18 @@ def test_seed_averaged_auc():
 
 
 def test_holdout_peers_mutual_nn_and_bad_arguments(tmp_path):
-    """holdout_peers.py: mutual nearest neighbours on a hand-built case, and each bad
-    --matcher / --holdout argument named in a clean exit before any heavy import."""
+    """holdout_peers.py: its mutual-NN row (the core's ``match_baseline``) on a hand-built
+    case, and each bad --matcher / --holdout argument named in a clean exit before any
+    heavy import."""
     import subprocess
 
-    peers = load(ROOT / "training" / "holdout_peers.py", "holdout_peers")
+    from paraformer import geometry as g
+
     e = np.eye(4, dtype=np.float32)
-    f0 = {"descriptors": e[[0, 1, 2]]}
-    f1 = {"descriptors": e[[1, 0, 3, 0]] * np.array([[1], [0.9], [1], [1]], np.float32)}
+    d0 = e[[0, 1, 2]]
+    d1 = e[[1, 0, 3, 0]] * np.array([[1], [0.9], [1], [1]], np.float32)
     # 0 ↔ 3 (1.0 beats 0.9 at row 1), 1 ↔ 0, 2 has no mutual partner
-    assert peers.mutual_nn(f0, f1).tolist() == [3, 0, -1]
+    assert g.match_baseline(d0, d1, "mnn").tolist() == [3, 0, -1]
     script = str(ROOT / "training" / "holdout_peers.py")
     weights = tmp_path / "w.safetensors"
     weights.write_bytes(b"x")

@@ -28,6 +28,7 @@ import sys
 
 import cv2
 import numpy as np
+from paraformer.geometry import match_baseline
 from scipy.optimize import least_squares
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -54,11 +55,8 @@ def matches(seq: rgbd.Sequence, a: int, b: int, feats: dict, extract) -> tuple[n
         if i not in feats:
             feats[i] = extract(seq.gray(i), 2048)
     fa, fb = feats[a], feats[b]
-    da, db = fa["descriptors"], fb["descriptors"]
-    sim = da @ db.T
-    ab, ba = sim.argmax(1), sim.argmax(0)
-    mutual = np.nonzero(ba[ab] == np.arange(len(ab)))[0]
-    pa, pb = fa["keypoints"][mutual], fb["keypoints"][ab[mutual]]
+    m0 = match_baseline(fa["descriptors"], fb["descriptors"], "mnn")
+    pa, pb = fa["keypoints"][m0 >= 0], fb["keypoints"][m0[m0 >= 0]]
     if len(pa) < 16:
         return pa[:0], pb[:0]
     _, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, 1.0, 0.999, 10000)
@@ -66,13 +64,6 @@ def matches(seq: rgbd.Sequence, a: int, b: int, feats: dict, extract) -> tuple[n
         return pa[:0], pb[:0]
     keep = mask.ravel().astype(bool)
     return pa[keep].astype(np.float64), pb[keep].astype(np.float64)
-
-
-def depth_at(depth: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    h, w = depth.shape
-    xi = np.clip(np.round(pts[:, 0]).astype(int), 0, w - 1)
-    yi = np.clip(np.round(pts[:, 1]).astype(int), 0, h - 1)
-    return depth[yi, xi].astype(np.float64)
 
 
 def transfer(theta: np.ndarray, pts: np.ndarray, z: np.ndarray, pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
@@ -149,7 +140,7 @@ def main() -> None:
         for a, b in train:
             pa, pb = obs[(a, b)]
             for p, q, i, j in ((pa, pb, a, b), (pb, pa, b, a)):
-                z = depth_at(reg[i], p)
+                z = rgbd.depth_at(reg[i], p)
                 ok = z > 0
                 if ok.sum() >= 8:
                     terms.append((p[ok], z[ok], q[ok], raw.poses[i], raw.poses[j]))
@@ -169,8 +160,7 @@ def main() -> None:
              "fit": {"command": " ".join(sys.argv), "training_pairs": len(train), "holdout_pairs": len(held),
                      "as_shipped": before}}
     fitted = rgbd.Sequence(args.sequence, colour_camera=False)  # the path training takes, with the fit
-    fitted.K, fitted.t_colour_from_depth = k_c, t_cd
-    fitted.poses = raw.poses @ np.linalg.inv(t_cd)
+    fitted.use_colour_camera(k_c, t_cd)
     after = {"train": summary(residual_distances(fitted, train, obs)),
              "holdout": summary(residual_distances(fitted, held, obs))}
     entry["fit"]["fitted"] = after

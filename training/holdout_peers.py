@@ -27,12 +27,6 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 
-def mutual_nn(f0: dict, f1: dict) -> np.ndarray:
-    sim = f0["descriptors"] @ f1["descriptors"].T
-    ab, ba = sim.argmax(1), sim.argmax(0)
-    return np.where(ba[ab] == np.arange(len(ab)), ab, -1)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--holdout", default=os.path.join(HERE, "cache", "holdout"))
@@ -58,11 +52,13 @@ def main() -> None:
         sys.exit(f"error: --holdout {args.holdout}: no such folder (train.py builds it on its first validation)")
     os.environ.setdefault("RAYON_NUM_THREADS", str(args.threads))
     import paraformer
+    import torch
     from paraformer import geometry as g
     from paraformer_train import evalsets as ev
     from paraformer_train import stream
+    from train import precision_recall  # the validation's own counting
 
-    matchers = [("mutual NN", mutual_nn)]
+    matchers = [("mutual NN", lambda f0, f1: g.match_baseline(f0["descriptors"], f1["descriptors"], "mnn"))]
     if args.lighterglue:
         from evaluate import lighterglue
 
@@ -83,7 +79,7 @@ def main() -> None:
                       "scores": np.ascontiguousarray(bt[f"scores{v}"][0].numpy()),
                       "descriptors": np.ascontiguousarray(bt[f"descriptors{v}"][0].numpy()),
                       "image_size": shard.image_size[i][v].astype(np.float32)} for v in (0, 1)]
-            pairs.append((feats[0], feats[1], bt["gt0"][0].numpy(), int(shard.kind[i]), shard.H[i], shard.image_size[i][0]))
+            pairs.append((feats[0], feats[1], bt["gt0"][0], int(shard.kind[i]), shard.H[i], shard.image_size[i][0]))
     print(f"{len(pairs)} holdout pairs ({sum(p[3] == 0 for p in pairs)} synthetic) at {args.keypoints} keypoints", flush=True)
 
     rows = []
@@ -93,12 +89,7 @@ def main() -> None:
         errors: list[list[float]] = [[] for _ in range(args.ransac_seeds)]
         for f0, f1, gt0, kind, h, size in pairs:
             m0 = np.asarray(match(f0, f1), np.int64)
-            keep = gt0 != -2
-            pred = (m0 >= 0) & keep
-            c = counts[kind]
-            c[0] += int((pred & (m0 == gt0)).sum())
-            c[1] += int(pred.sum())
-            c[2] += int((gt0 >= 0).sum())
+            counts[kind] = [a + b for a, b in zip(counts[kind], precision_recall(torch.from_numpy(m0), gt0))]
             if kind == 0:
                 ok = m0 >= 0
                 for s in range(args.ransac_seeds):

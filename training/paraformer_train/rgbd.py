@@ -92,10 +92,15 @@ class Sequence:
         self.k_depth, self.t_colour_from_depth = self.K, None
         cal = colour_cameras().get(self.name) if colour_camera else None
         if cal is not None:
-            self.K = np.asarray(cal["K"], np.float64).reshape(3, 3)
-            self.t_colour_from_depth = np.asarray(cal["T_colour_from_depth"], np.float64).reshape(4, 4)
-            # camera-to-world of the colour camera: T_w_depth · T_depth_colour
-            self.poses = self.poses @ np.linalg.inv(self.t_colour_from_depth)
+            self.use_colour_camera(np.asarray(cal["K"], np.float64).reshape(3, 3),
+                                   np.asarray(cal["T_colour_from_depth"], np.float64).reshape(4, 4))
+
+    def use_colour_camera(self, k_colour: np.ndarray, t_colour_from_depth: np.ndarray) -> None:
+        """Describe the colour frames from now on: their K, the colour camera's poses and the
+        depth re-rendered into it (the shipped K and poses are the depth camera's)."""
+        self.K, self.t_colour_from_depth = k_colour, t_colour_from_depth
+        # camera-to-world of the colour camera: T_w_depth · T_depth_colour
+        self.poses = self.poses @ np.linalg.inv(t_colour_from_depth)
 
     @property
     def key(self) -> str:
@@ -129,6 +134,14 @@ class Sequence:
         return d
 
 
+def depth_at(depth: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Depth (float64) at the nearest pixel of each point, clamped into the frame."""
+    h, w = depth.shape
+    xi = np.clip(np.round(pts[:, 0]).astype(int), 0, w - 1)
+    yi = np.clip(np.round(pts[:, 1]).astype(int), 0, h - 1)
+    return depth[yi, xi].astype(np.float64)
+
+
 def project(pts: np.ndarray, depth_a: np.ndarray, depth_b: np.ndarray, K: np.ndarray,
             pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
     """Keypoints ``pts`` of frame a mapped into frame b (codes in the module doc)."""
@@ -136,9 +149,7 @@ def project(pts: np.ndarray, depth_a: np.ndarray, depth_b: np.ndarray, K: np.nda
     out = np.full((len(pts), 2), np.nan, np.float32)
     if len(pts) == 0:
         return out
-    xi = np.clip(np.round(pts[:, 0]).astype(int), 0, w - 1)
-    yi = np.clip(np.round(pts[:, 1]).astype(int), 0, h - 1)
-    z = depth_a[yi, xi].astype(np.float64)
+    z = depth_at(depth_a, pts)
     ok = z > 0
     rays = np.linalg.solve(K, np.stack([pts[:, 0], pts[:, 1], np.ones(len(pts))]).astype(np.float64))
     x_a = rays * z
