@@ -283,3 +283,93 @@ def test_init_from_a_weights_file_checks_the_architecture():
     other = Matcher(model_config(args | {"heads": 2}))
     with pytest.raises(SystemExit, match="num_heads"):
         init_weights(path, other.config)
+
+
+def _random_pair(b=2, m=40, n=33, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return {"keypoints0": torch.rand(b, m, 2, generator=g) * 300, "keypoints1": torch.rand(b, n, 2, generator=g) * 300,
+            "scores0": torch.rand(b, m, generator=g), "scores1": torch.rand(b, n, generator=g),
+            "descriptors0": torch.nn.functional.normalize(torch.randn(b, m, 64, generator=g), dim=-1),
+            "descriptors1": torch.nn.functional.normalize(torch.randn(b, n, 64, generator=g), dim=-1),
+            "image_size0": torch.tensor([[320.0, 240.0]] * b), "image_size1": torch.tensor([[320.0, 240.0]] * b)}
+
+
+def test_grown_model_computes_what_its_init_did():
+    """`--init` of a 4-layer checkpoint into a 6-layer run: the two new layers are identity
+    (zero last fuse Linear), so the scores are unchanged; a mismatch beyond depth is an error."""
+    from train import load_init, model_config
+    from paraformer_train.model import Matcher
+
+    args = {"preset": "paraformer", "dim": 32, "heads": 2, "sinkhorn": 20}
+    torch.manual_seed(0)
+    small = Matcher(model_config(args | {"depth": 4})).eval()
+    big = Matcher(model_config(args | {"depth": 6})).eval()
+    assert load_init(big, small.state_dict()) == [4, 5]
+    data = _random_pair()
+    with torch.no_grad():
+        assert torch.allclose(big.scores(data), small.scores(data), atol=1e-5)
+        assert not torch.equal(big.layers[4].fuse[0].weight, torch.zeros_like(big.layers[4].fuse[0].weight))
+    # Same depth: a plain strict load.
+    assert load_init(Matcher(model_config(args | {"depth": 4})), small.state_dict()) == []
+    wide = Matcher(model_config(args | {"dim": 48, "depth": 6}))
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        load_init(wide, small.state_dict())
+    deep = Matcher(model_config(args | {"depth": 6}))
+    with pytest.raises(SystemExit, match="beyond its depth"):
+        load_init(deep, {k: v for k, v in small.state_dict().items() if k != "final_proj.bias"})
+
+
+def test_layer_loss_ends_with_the_models_own_loss():
+    """`--layer-loss`: one loss per layer from `layer_states`, the last equal to the plain
+    loss of `scores`; the training-only heads start as copies of the model's head."""
+    from train import LayerHeads, matching_losses, model_config
+    from paraformer_train.model import Matcher, pair_scores
+
+    torch.manual_seed(1)
+    model = Matcher(model_config({"preset": "paraformer", "dim": 32, "heads": 2, "depth": 3, "sinkhorn": 20})).eval()
+    data = _random_pair(seed=3)
+    data["gt0"] = torch.randint(-2, 33, (2, 40))
+    data["gt1"] = torch.randint(-2, 0, (2, 33))
+    heads = LayerHeads(model)
+    plain = matching_losses(model, None, data, log_optimal_transport, 20)
+    every = matching_losses(model, heads, data, log_optimal_transport, 20)
+    assert len(plain) == 1 and len(every) == 3
+    assert torch.allclose(every[-1], plain[0], atol=1e-5)
+    x, y = model.layer_states(data)[0]
+    assert torch.equal(pair_scores(heads.proj[0], x, y), pair_scores(model.final_proj, x, y))
+    assert not torch.allclose(every[0], every[-1])
+    u = Matcher(model_config({"preset": "paraformer_u", "dim": 64, "heads": 2, "depth": 4, "sinkhorn": 20}))
+    with pytest.raises(ValueError, match="paraformer model"):
+        u.layer_states(data)
+
+
+def test_gpu_trainee_grows_and_resumes_with_a_loss_on_every_layer(tmp_path):
+    """train_gpu's depth-6 model with `+layer-loss`: grown from a 4-layer checkpoint (same
+    scores at the start), one step on the CPU, saved with its layer heads, resumed."""
+    from train import model_config
+    from train_gpu import CHOICES, Trainee
+    from paraformer_train.model import Matcher
+
+    name = "paraformer-xfeat-depth6+layer-loss"
+    assert name in CHOICES and "paraformer-u-xfeat+layer-loss" not in CHOICES
+    torch.manual_seed(2)
+    small = Matcher(model_config({"preset": "paraformer", "dim": 64, "heads": 2, "depth": 4, "sinkhorn": 50})).eval()
+    init = tmp_path / "small.pt"
+    torch.save({"model": small.state_dict(), "pairs": 7}, init)
+    t = Trainee(name, str(tmp_path), str(tmp_path), "cpu", str(init), ema=0.9)
+    assert t.origin["grown_layers"] == [4, 5] and len(t.heads.proj) == 5
+    data = _random_pair(m=24, n=24, seed=5)
+    with torch.no_grad():
+        assert torch.allclose(t.ema.scores(data), small.scores(data), atol=1e-5)
+    data["gt0"] = torch.randint(-2, 24, (2, 24))
+    data["gt1"] = torch.randint(-2, 0, (2, 24))
+    before = t.heads.proj[0].weight.clone()
+    t.step(data, 0.0)
+    assert not torch.equal(before, t.heads.proj[0].weight)
+    t.save()
+    again = Trainee(name, str(tmp_path), str(tmp_path), "cpu", None, ema=0.9)
+    assert again.pairs == 2 and torch.equal(again.heads.proj[0].weight, t.heads.proj[0].weight)
+    # The state of the layer-loss model is not silently resumed as the plain one.
+    (tmp_path / "paraformer-xfeat-depth6.pt").write_bytes((tmp_path / f"{name}.pt").read_bytes())
+    with pytest.raises(SystemExit, match="other model arguments"):
+        Trainee("paraformer-xfeat-depth6", str(tmp_path), str(tmp_path), "cpu", None, ema=0.9)

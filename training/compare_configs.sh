@@ -2,7 +2,7 @@
 # Short runs at equal pairs before the long run (issue: model choice and the Sinkhorn-gradient
 # A/B), all on one fixed pre-generated pool so that every run sees the same batches:
 #   python training/generate_pairs.py --pool training/runs/short_pool --seed 100 --shards 12 --max-pending 1000
-#   bash training/compare_configs.sh            # then: python training/summarize_runs.py
+#   bash training/compare_configs.sh            # then: python training/summarize_runs.py training/runs/compare/*
 # Runs in parallel, one thread each.
 set -euo pipefail
 cd "$(dirname "$0")"

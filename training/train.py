@@ -28,11 +28,13 @@ import time
 
 import numpy as np
 import torch
+from torch import nn
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paraformer_train import stream  # noqa: E402
 from paraformer_train.io import save_safetensors  # noqa: E402
-from paraformer_train.model import Matcher, extract_matches, log_optimal_transport, log_optimal_transport_last_grad  # noqa: E402
+from paraformer_train.model import (Matcher, extract_matches, log_optimal_transport,  # noqa: E402
+                                    log_optimal_transport_last_grad, pair_scores)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed")
@@ -73,6 +75,62 @@ def init_weights(path: str, config: dict) -> dict:
         return other.state_dict()
     init = torch.load(path, map_location="cpu", weights_only=False)
     return init.get("ema", init["model"])
+
+
+def load_init(model: Matcher, state: dict) -> list[int]:
+    """Loads ``state`` into ``model``. A ParaFormer with more layers than ``state`` is grown:
+    the init's layers come first and each new layer's last fuse Linear is zero, so that its
+    residual passes the features through and the grown model computes what the init did.
+    Returns the indices of the new layers."""
+    own = model.state_dict()
+    new = sorted({int(k.split(".")[1]) for k in own if k.startswith("layers.")}
+                 - {int(k.split(".")[1]) for k in state if k.startswith("layers.")})
+    if model.config["model"] != "paraformer" or not new:
+        model.load_state_dict(state)
+        return []
+    if new != list(range(new[0], len(model.layers))):
+        raise SystemExit(f"error: --init has layers the run lacks or a gap before {new[0]}")
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    stray = [k for k in missing if not any(k.startswith(f"layers.{i}.") for i in new)]
+    if stray or unexpected:
+        raise SystemExit(f"error: --init does not match the run beyond its depth: missing {stray}, unexpected {unexpected}")
+    with torch.no_grad():
+        for i in new:
+            last = model.layers[i].fuse[-1]
+            last.weight.zero_()
+            last.bias.zero_()
+    return new
+
+
+class LayerHeads(nn.Module):
+    """Training-only assignment heads (projection + dustbin score) for every layer but the
+    last, which has the model's own: a loss on every layer, as LightGlue trains. They start
+    as copies of the model's head and are never exported."""
+
+    def __init__(self, model: Matcher):
+        super().__init__()
+        n = len(model.layers) - 1
+        self.proj = nn.ModuleList([nn.Linear(model.final_proj.in_features, model.final_proj.out_features)
+                                   for _ in range(n)])
+        self.bin_score = nn.Parameter(torch.ones(n))
+        self.copy_from(model)
+
+    @torch.no_grad()
+    def copy_from(self, model: Matcher) -> None:
+        for p in self.proj:
+            p.load_state_dict(model.final_proj.state_dict())
+        self.bin_score.fill_(model.bin_score.item())
+
+    def heads(self, model: Matcher) -> list:
+        return [(p, self.bin_score[i]) for i, p in enumerate(self.proj)] + [(model.final_proj, model.bin_score)]
+
+
+def matching_losses(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int) -> list[torch.Tensor]:
+    """The assignment NLL of the last layer, or with ``heads`` of every layer (last one last)."""
+    if heads is None:
+        return [nll_loss(sinkhorn(model.scores(bt), model.bin_score, iters), bt["gt0"], bt["gt1"])]
+    return [nll_loss(sinkhorn(pair_scores(proj, x, y), b, iters), bt["gt0"], bt["gt1"])
+            for (x, y), (proj, b) in zip(model.layer_states(bt), heads.heads(model))]
 
 
 def nll_loss(logp: torch.Tensor, gt0: torch.Tensor, gt1: torch.Tensor) -> torch.Tensor:
@@ -190,6 +248,8 @@ def main() -> None:
     ap.add_argument("--depth", type=int, default=4, help="layers (SuperGlue: self+cross pairs)")
     ap.add_argument("--sinkhorn", type=int, default=50, help="Sinkhorn iterations (training and shipped config)")
     ap.add_argument("--sinkhorn-grad", choices=["last", "full"], default="last")
+    ap.add_argument("--layer-loss", action="store_true",
+                    help="ParaFormer: average the loss over every layer's assignment (training-only heads)")
     ap.add_argument("--pairs", type=int, default=600_000, help="training pairs in all (lr schedule length)")
     ap.add_argument("--stop-after", type=int, default=None, help="stop this invocation after this many pairs in all")
     ap.add_argument("--keypoints", default="512x8:0.55,1024x4:0.3,2048x2:0.15",
@@ -222,7 +282,8 @@ def main() -> None:
                     help="validate the run's checkpoint once, append it to log.jsonl and exit")
     ap.add_argument("--init", default=None,
                     help="a run that has no checkpoint yet starts from these weights (a train.py or train_gpu.py "
-                         "checkpoint: its EMA weights), e.g. to fine-tune the GPU run on real pairs")
+                         "checkpoint: its EMA weights), e.g. to fine-tune the GPU run on real pairs; a "
+                         "ParaFormer init with fewer layers than --depth is grown by identity layers")
     ap.add_argument("--fixed-pool", default=None,
                     help="read this pre-generated pool (kept, no generator): short comparison runs")
     args = ap.parse_args()
@@ -236,7 +297,9 @@ def main() -> None:
     state = torch.load(ckpt, weights_only=False) if os.path.exists(ckpt) else None
     if state is not None:
         saved = state["args"]
-        changed = {k: (saved[k], getattr(args, k)) for k in MODEL_ARGS if saved.get(k) != getattr(args, k)}
+        changed = {k: (saved.get(k), getattr(args, k)) for k in MODEL_ARGS if saved.get(k) != getattr(args, k)}
+        if saved.get("layer_loss", False) != args.layer_loss:  # its heads are in the optimiser's state
+            changed["layer_loss"] = (saved.get("layer_loss", False), args.layer_loss)
         if changed:
             sys.exit(f"error: {ckpt} was trained with other model arguments: {changed}")
     torch.manual_seed(args.seed)
@@ -247,22 +310,30 @@ def main() -> None:
     # With --ema 0 it is the trained model itself.
     ema = Matcher(cfg).eval() if args.ema > 0 else model
     ema.load_state_dict(model.state_dict())
-    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    if args.layer_loss and args.preset != "paraformer":
+        sys.exit("error: --layer-loss needs --preset paraformer")
+    heads = LayerHeads(model) if args.layer_loss else None
+    params = list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
+    opt = torch.optim.AdamW(params, lr=args.lr, weight_decay=args.weight_decay)
     pairs_seen, steps, cursor, spent, best = 0, 0, 0, 0.0, -1.0
     rng = np.random.default_rng([args.seed, 7])
     if state is not None:
         model.load_state_dict(state["model"])
         if ema is not model:
             ema.load_state_dict(state.get("ema", state["model"]))
+        if heads is not None:
+            heads.load_state_dict(state["heads"])
         opt.load_state_dict(state["opt"])
         pairs_seen, steps, cursor = state["pairs"], state["steps"], state["cursor"]
         spent, best = state["train_s"], state["best"]
         rng.bit_generator.state = state["rng"]
         print(f"resumed at {pairs_seen} pairs, step {steps}, stream shard {cursor}", flush=True)
     elif args.init:
-        model.load_state_dict(init_weights(args.init, model.config))
+        grown = load_init(model, init_weights(args.init, model.config))
         ema.load_state_dict(model.state_dict())
-        print(f"initialised from {args.init}", flush=True)
+        if heads is not None:
+            heads.copy_from(model)
+        print(f"initialised from {args.init}" + (f", new identity layers {grown}" if grown else ""), flush=True)
     holdout = ensure_holdout(args.val_pairs)
     if args.validate_only:
         v = validate(ema, holdout, 512, args.val_threshold, auc=False)
@@ -296,6 +367,8 @@ def main() -> None:
         blob = {"model": model.state_dict(), "ema": ema.state_dict(), "opt": opt.state_dict(), "pairs": pairs_seen, "steps": steps,
                 "cursor": reader.low_water(), "train_s": spent + time.time() - t_mark, "best": best,
                 "rng": rng.bit_generator.state, "args": vars(args)}
+        if heads is not None:
+            blob["heads"] = heads.state_dict()
         torch.save(blob, ckpt + ".tmp")
         os.replace(ckpt + ".tmp", ckpt)
 
@@ -309,11 +382,11 @@ def main() -> None:
                                     synthetic_positive_px=args.synthetic_positive_px)
             for g_ in opt.param_groups:
                 g_["lr"] = lr_at(pairs_seen, args.pairs, args.warmup, args.lr)
-            logp = sinkhorn(model.scores(bt), model.bin_score, args.sinkhorn)
-            loss = nll_loss(logp, bt["gt0"], bt["gt1"])
+            losses = matching_losses(model, heads, bt, sinkhorn, args.sinkhorn)
+            loss = sum(losses) / len(losses)
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            torch.nn.utils.clip_grad_norm_(params, 1.0)
             opt.step()
             if ema is not model:
                 with torch.no_grad():
@@ -324,7 +397,7 @@ def main() -> None:
             steps += 1
             pairs_seen += bsz
             kinds[k] += bsz
-            running.append(loss.item())
+            running.append(losses[-1].item())  # the last layer's loss: comparable with or without --layer-loss
             if steps % 50 == 0:
                 rate = sum(kinds.values()) / max(time.time() - t_mark, 1e-9)
                 print(f"step {steps} pairs {pairs_seen} loss {np.mean(running[-50:]):.4f} "

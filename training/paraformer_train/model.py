@@ -412,6 +412,12 @@ def extract_matches(p, threshold: float):
     }
 
 
+def pair_scores(proj: nn.Linear, x, y):
+    """SPEC §8 score matrix ⟨proj(x_i), proj(y_j)⟩ / √C."""
+    mx, my = proj(x), proj(y)
+    return mx @ my.transpose(1, 2) / math.sqrt(mx.shape[-1])
+
+
 class Matcher(nn.Module):
     """The whole network; ``config`` is a SPEC §9 dict (missing fields take defaults)."""
 
@@ -469,12 +475,25 @@ class Matcher(nn.Module):
             x, y, _ = self.stages[4](x, y)
         return x, y
 
-    def scores(self, data: dict):
+    def encode_pair(self, data: dict):
         x = self.encode(data["keypoints0"], data["scores0"], data["descriptors0"], data["image_size0"])
         y = self.encode(data["keypoints1"], data["scores1"], data["descriptors1"], data["image_size1"])
-        x, y = self.body(x, y)
-        mx, my = self.final_proj(x), self.final_proj(y)
-        return mx @ my.transpose(1, 2) / math.sqrt(mx.shape[-1])
+        return x, y
+
+    def scores(self, data: dict):
+        return pair_scores(self.final_proj, *self.body(*self.encode_pair(data)))
+
+    def layer_states(self, data: dict) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """ParaFormer only: the features of both images after every layer (the last entry is
+        what ``scores`` projects); for a loss on every layer in training."""
+        if self.config["model"] != "paraformer":
+            raise ValueError(f"layer_states needs a paraformer model, not {self.config['model']!r}")
+        x, y = self.encode_pair(data)
+        states = []
+        for layer in self.layers:
+            x, y, _ = layer(x, y, need_probs=False)
+            states.append((x, y))
+        return states
 
     def forward(self, data: dict, sinkhorn_iterations: int | None = None) -> dict:
         """``data``: batched ``keypoints0/1`` [B,K,2], ``scores0/1`` [B,K], ``descriptors0/1``

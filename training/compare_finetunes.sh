@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# What limits the 2-head line: fine-tunes of one checkpoint at equal pairs, one after the
+# other on one fixed pre-generated pool (same batches, same order), each a change that could
+# lift the plateau: gradients through all Sinkhorn iterations, a loss on every layer
+# (training-only heads), two more layers (grown as identity layers, so every arm starts from
+# the same function), and both of the last two. Generate the pool once, then run:
+#   python training/generate_pairs.py --pool training/runs/finetune_pool --seed 300 --shards 40 \
+#       --max-pending 1000 --real-fraction 0.5
+#   bash training/compare_finetunes.sh     # PAIRS=3600 ARMS="control layer_loss" to choose
+# Each arm's log.jsonl lands in training/runs/compare_finetunes/<arm>/; the initial weights'
+# validation in .../init/. Summary: python training/summarize_runs.py training/runs/compare_finetunes/*
+set -euo pipefail
+cd "$(dirname "$0")"
+PAIRS=${PAIRS:-3600}
+KEYPOINTS=${KEYPOINTS:-512x8:0.75,1024x4:0.25}
+INIT=${INIT:-checkpoints/paraformer-xfeat-finetune-1p5px-cont/last.pt}
+ARMS=${ARMS:-"control full_sinkhorn_grad layer_loss depth6 depth6_layer_loss"}
+OUT=runs/compare_finetunes
+common=(--preset paraformer --dim 64 --heads 2 --init "$INIT" --fixed-pool runs/finetune_pool
+        --pairs "$PAIRS" --keypoints "$KEYPOINTS" --lr 1e-4 --warmup 200 --ema 0.99 --val-every $((PAIRS / 2))
+        --real-fraction 0.5 --synthetic-positive-px 1.5 --seed 11 --threads "${THREADS:-2}")
+mkdir -p "$OUT"
+if [ ! -s "$OUT/init/log.jsonl" ]; then
+  python train.py --run "$OUT/init" --work "$OUT/init" "${common[@]}" --depth 4 --validate-only > "$OUT/init.log" 2>&1
+fi
+for arm in $ARMS; do
+  case $arm in
+    control) extra=(--depth 4) ;;
+    full_sinkhorn_grad) extra=(--depth 4 --sinkhorn-grad full) ;;
+    layer_loss) extra=(--depth 4 --layer-loss) ;;
+    depth6) extra=(--depth 6) ;;
+    depth6_layer_loss) extra=(--depth 6 --layer-loss) ;;
+    *) echo "unknown arm $arm" >&2; exit 2 ;;
+  esac
+  python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1
+done
