@@ -96,3 +96,28 @@ def test_holdout_peers_mutual_nn_and_bad_arguments(tmp_path):
                          (["--holdout", str(tmp_path / "none")], "no such folder")):
         out = subprocess.run([sys.executable, script, *args], capture_output=True, text=True)
         assert out.returncode != 0 and needle in out.stderr, (args, out.stderr)
+
+
+def test_summarize_runs_table_and_bad_folders(tmp_path, capsys):
+    """summarize_runs.py: one row per validation (only the last with --last), missing values
+    as '–', folders without a log skipped with the reason, none at all an error (exit 2)."""
+    import json
+
+    mod = load(ROOT / "training" / "summarize_runs.py", "summarize_runs")
+    a = tmp_path / "control"
+    a.mkdir()
+    (a / "log.jsonl").write_text(json.dumps({"pairs": 0, "val_loss@512": 0.9676}) + "\n"
+                                 + json.dumps({"pairs": 1804, "loss": 0.7157, "val_loss@512": 0.9502, "f1@2048": 0.5373}) + "\n")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    out_json = tmp_path / "rows.json"
+    assert mod.main([str(a), str(empty), str(tmp_path / "not-a-folder"), "--json", str(out_json)]) == 0
+    out = capsys.readouterr()
+    lines = [line for line in out.out.splitlines() if line.startswith("| control")]
+    assert len(lines) == 2 and "| 1804 | 0.716 | 0.950 |" in lines[1] and "| 0 | – | 0.968 |" in lines[0]
+    assert "empty: no log.jsonl" in out.err
+    assert [r["pairs"] for r in json.loads(out_json.read_text())] == [0, 1804]
+    assert mod.main([str(a), "--last"]) == 0
+    assert capsys.readouterr().out.count("| control") == 1
+    assert mod.main([str(empty)]) == 2
+    assert "none of the folders" in capsys.readouterr().err
