@@ -335,12 +335,12 @@ def test_layer_loss_ends_with_the_models_own_loss():
     every = matching_losses(model, heads, data, log_optimal_transport, 20)
     assert len(plain) == 1 and len(every) == 3
     assert torch.allclose(every[-1], plain[0], atol=1e-5)
-    x, y = model.layer_states(data)[0]
+    x, y = model.layer_states(*model.encode_pair(data))[0]
     assert torch.equal(pair_scores(heads.proj[0], x, y), pair_scores(model.final_proj, x, y))
     assert not torch.allclose(every[0], every[-1])
     u = Matcher(model_config({"preset": "paraformer_u", "dim": 64, "heads": 2, "depth": 4, "sinkhorn": 20}))
     with pytest.raises(ValueError, match="paraformer model"):
-        u.layer_states(data)
+        u.layer_states(*u.encode_pair(data))
 
 
 def test_gpu_trainee_grows_and_resumes_with_a_loss_on_every_layer(tmp_path):

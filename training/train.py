@@ -130,7 +130,7 @@ def matching_losses(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn
     if heads is None:
         return [nll_loss(sinkhorn(model.scores(bt), model.bin_score, iters), bt["gt0"], bt["gt1"])]
     return [nll_loss(sinkhorn(pair_scores(proj, x, y), b, iters), bt["gt0"], bt["gt1"])
-            for (x, y), (proj, b) in zip(model.layer_states(bt), heads.heads(model))]
+            for (x, y), (proj, b) in zip(model.layer_states(*model.encode_pair(bt)), heads.heads(model))]
 
 
 def nll_loss(logp: torch.Tensor, gt0: torch.Tensor, gt1: torch.Tensor) -> torch.Tensor:

@@ -458,8 +458,7 @@ class Matcher(nn.Module):
             for layer in self.gnn.layers:
                 x, y = layer(x, y)
         elif model == "paraformer":
-            for layer in self.layers:
-                x, y, _ = layer(x, y, need_probs=False)
+            x, y = self.layer_states(x, y)[-1]
         else:
             skips, indices = [], []
             for p in range(2):
@@ -483,12 +482,11 @@ class Matcher(nn.Module):
     def scores(self, data: dict):
         return pair_scores(self.final_proj, *self.body(*self.encode_pair(data)))
 
-    def layer_states(self, data: dict) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """ParaFormer only: the features of both images after every layer (the last entry is
-        what ``scores`` projects); for a loss on every layer in training."""
+    def layer_states(self, x, y) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """ParaFormer only: the features of both images after every layer, from the encoded
+        ``x, y`` (the last entry is what ``body`` returns); training puts a loss on each."""
         if self.config["model"] != "paraformer":
             raise ValueError(f"layer_states needs a paraformer model, not {self.config['model']!r}")
-        x, y = self.encode_pair(data)
         states = []
         for layer in self.layers:
             x, y, _ = layer(x, y, need_probs=False)
