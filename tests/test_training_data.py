@@ -399,7 +399,37 @@ def test_unshared_runs_build_the_spec_switches_and_name_bad_ones(tmp_path):
     bt = _random_pair()
     with torch.no_grad():
         assert torch.allclose(model(bt)["log_assignment"], back(bt)["log_assignment"], atol=1e-5)
+    # Started from a shared model (`--init`): equal self and cross copies, the same function.
+    from train import load_init
+
+    shared = Matcher(model_config(args | {"unshare": []})).eval()
+    grown = Matcher(model_config(args | {"depth": 3})).eval()
+    assert load_init(grown, shared.state_dict()) == [2]
+    with torch.no_grad():
+        assert torch.allclose(grown(bt)["log_assignment"], shared(bt)["log_assignment"], atol=1e-5)
+        w = grown.layers[0].attn
+        assert torch.equal(w.self_proj[1].weight, w.cross_proj[1].weight)
+        assert torch.equal(w.self_merge.bias, shared.layers[0].attn.merge.bias)
     with pytest.raises(ValueError, match="unknown sharing switches"):
         model_config(args | {"unshare": ["queries"]})
     with pytest.raises(ValueError, match="no parallel layers"):
         model_config(args | {"preset": "superglue"})
+
+
+def test_gpu_trainee_unshares_a_shared_init(tmp_path):
+    """train_gpu's `paraformer-xfeat-unshared` from a shared 4-layer checkpoint: separate
+    self/cross tensors, equal copies at the start (same scores)."""
+    from train import model_config
+    from train_gpu import CHOICES, Trainee
+    from paraformer_train.model import Matcher
+
+    assert "paraformer-xfeat-unshared+layer-loss" in CHOICES
+    torch.manual_seed(3)
+    small = Matcher(model_config({"preset": "paraformer", "dim": 64, "heads": 2, "depth": 4, "sinkhorn": 50})).eval()
+    init = tmp_path / "small.pt"
+    torch.save({"model": small.state_dict(), "pairs": 7}, init)
+    t = Trainee("paraformer-xfeat-unshared", str(tmp_path), str(tmp_path), "cpu", str(init), ema=0.9)
+    assert t.args["unshare"] == ["qkv", "merge"] and t.ema.config["parallel"]["share_qkv"] is False
+    data = _random_pair(m=24, n=24, seed=6)
+    with torch.no_grad():
+        assert torch.allclose(t.ema.scores(data), small.scores(data), atol=1e-5)

@@ -3,7 +3,8 @@
 # other on one fixed pre-generated pool (same batches, same order), each a change that could
 # lift the plateau: gradients through all Sinkhorn iterations, a loss on every layer
 # (training-only heads), two more layers (grown as identity layers, so every arm starts from
-# the same function), and both of the last two. Generate the pool once, then run:
+# the same function), both of the last two, and separate self/cross q/k/v and merges (equal
+# copies of the shared ones at the start: again the same function). Generate the pool once, then run:
 #   python training/generate_pairs.py --pool training/runs/finetune_pool --seed 300 --shards 40 \
 #       --max-pending 1000 --real-fraction 0.5
 #   bash training/compare_finetunes.sh     # PAIRS=3600 ARMS="control layer_loss" to choose
@@ -30,6 +31,7 @@ for arm in $ARMS; do
     layer_loss) extra=(--depth 4 --layer-loss) ;;
     depth6) extra=(--depth 6) ;;
     depth6_layer_loss) extra=(--depth 6 --layer-loss) ;;
+    unshared) extra=(--depth 4 --unshare qkv merge) ;;
     *) echo "unknown arm $arm" >&2; exit 2 ;;
   esac
   python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1

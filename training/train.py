@@ -81,7 +81,8 @@ def init_weights(path: str, config: dict) -> dict:
         from paraformer_train.io import load_safetensors
 
         other = load_safetensors(path)
-        keys = [k for k in config if k not in ("match_threshold", "sinkhorn_iterations")]
+        # Sharing switches may differ: load_init copies shared tensors into unshared ones.
+        keys = [k for k in config if k not in ("match_threshold", "sinkhorn_iterations", "parallel")]
         diff = {k: (other.config.get(k), config[k]) for k in keys if other.config.get(k) != config[k]}
         if diff:
             raise SystemExit(f"error: --init {path} has another architecture (file, run): {diff}")
@@ -90,12 +91,33 @@ def init_weights(path: str, config: dict) -> dict:
     return init.get("ema", init["model"])
 
 
+def unshare_state(state: dict, own: dict) -> dict:
+    """``state`` with shared q/k/v projections or merges (``attn.proj.*``, ``attn.merge.*``)
+    copied into both the self and the cross tensors where the model has them separate (SPEC
+    §5 switches off): the unshared model starts as the shared one and computes the same."""
+    out = dict(state)
+    for key in own:
+        for part in ("proj", "merge"):
+            for side in ("self", "cross"):
+                tag = f".attn.{side}_{part}"
+                if tag in key and key not in state:
+                    shared = key.replace(tag, f".attn.{part}")
+                    if shared in state:
+                        out[key] = state[shared].clone()
+    for key in state:
+        if (".attn.proj." in key or ".attn.merge." in key) and key not in own and key.replace(".attn.", ".attn.self_") in out:
+            del out[key]
+    return out
+
+
 def load_init(model: Matcher, state: dict) -> list[int]:
     """Loads ``state`` into ``model``. A ParaFormer with more layers than ``state`` is grown:
     the init's layers come first and each new layer's last fuse Linear is zero, so that its
     residual passes the features through and the grown model computes what the init did.
-    Returns the indices of the new layers."""
+    Shared q/k/v or merges of the init become equal self and cross copies where the model
+    has them separate (``unshare_state``). Returns the indices of the new layers."""
     own = model.state_dict()
+    state = unshare_state(state, own)
     new = sorted({int(k.split(".")[1]) for k in own if k.startswith("layers.")}
                  - {int(k.split(".")[1]) for k in state if k.startswith("layers.")})
     if model.config["model"] != "paraformer" or not new:

@@ -53,9 +53,12 @@ MODELS = {
     "paraformer-xfeat": ("paraformer", 64, 2, 4, 5e-4),
     "paraformer-xfeat-depth6": ("paraformer", 64, 2, 6, 5e-4),
     "paraformer-xfeat-width96": ("paraformer", 96, 2, 4, 5e-4),
+    "paraformer-xfeat-unshared": ("paraformer", 64, 2, 4, 5e-4),  # separate self/cross q/k/v and merges
     "paraformer-u-xfeat": ("paraformer_u", 64, 2, 4, 5e-4),
     "paraformer-xfeat-large": ("paraformer", 256, 4, 9, 2e-4),  # the paper's width and depth
 }
+# Sharing switches turned off (train.py --unshare), by model name.
+UNSHARED = {"paraformer-xfeat-unshared": ["qkv", "merge"]}
 # NAME + LAYER_LOSS: the same model trained with a loss on every layer (train.py --layer-loss).
 LAYER_LOSS = "+layer-loss"
 CHOICES = sorted(MODELS) + sorted(n + LAYER_LOSS for n, m in MODELS.items() if m[0] == "paraformer")
@@ -239,6 +242,8 @@ class Trainee:
         base = name.removesuffix(LAYER_LOSS)
         kind, dim, heads, depth, self.peak = MODELS[base]
         self.args = {"preset": kind, "dim": dim, "heads": heads, "depth": depth, "sinkhorn": SINKHORN}
+        if base in UNSHARED:
+            self.args["unshare"] = UNSHARED[base]
         if base != name:
             self.args["layer_loss"] = True
         cfg = model_config(self.args)
