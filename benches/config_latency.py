@@ -26,7 +26,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 SWITCHES = ("qkv", "merge", "attention_weights")
-DEFAULT_CONFIGS = ["h2=64,2,4", "unshared=64,2,4,qkv,merge", "depth6_h1=64,1,6", "wide=96,2,6"]
+DEFAULT_CONFIGS = ["h2=64,2,4", "unshared=64,2,4,qkv,merge", "depth6=64,2,6", "depth6_h1=64,1,6", "width96_h3=96,3,4",
+                   "width96_h2=96,2,4", "lighterglue_size=96,2,6"]
 
 
 def parse_config(text: str) -> tuple[str, dict]:

@@ -1,16 +1,17 @@
 #!/usr/bin/env bash
 # Capacity at equal pairs, from scratch: the shipped 2-head configuration against changes
 # that add capacity at little or no CPU latency in the engine (q/k/v and merge not shared
-# between self and cross attention; a loss on every layer from the first step; 6 layers of
-# one head, whose attention costs about what 4 layers of two heads cost) and one that costs
-# about 2x (LighterGlue's width and depth). Every arm reads the same batches in the same
+# between self and cross attention: +2% latency; a loss on every layer from the first step:
+# none) and changes that fit the latency budget only in bf16 (6 layers; width 96 with
+# 3 heads of width 32, a fused-kernel width): benches/config_latency.py prices them at 2048
+# keypoints. Every arm reads the same batches in the same
 # order from one fixed pool (the pool of compare_finetunes.sh, each pair drawn twice):
 #   bash training/compare_capacity.sh          # PAIRS=10240 ARMS="control unshared" to choose
 # Summary: python training/summarize_runs.py training/runs/compare_capacity/*/
 set -euo pipefail
 cd "$(dirname "$0")"
 PAIRS=${PAIRS:-10240}
-ARMS=${ARMS:-"control unshared layer_loss depth6_h1 wide"}
+ARMS=${ARMS:-"control unshared layer_loss depth6 wide"}
 OUT=runs/compare_capacity
 common=(--preset paraformer --fixed-pool runs/finetune_pool --reuse 2 --pairs "$PAIRS"
         --keypoints 512x8:0.75,1024x4:0.25 --lr 5e-4 --warmup 1000 --ema 0.99 --val-every $((PAIRS / 2))
@@ -21,8 +22,8 @@ for arm in $ARMS; do
     control) extra=(--dim 64 --heads 2 --depth 4) ;;
     unshared) extra=(--dim 64 --heads 2 --depth 4 --unshare qkv merge) ;;
     layer_loss) extra=(--dim 64 --heads 2 --depth 4 --layer-loss) ;;
-    depth6_h1) extra=(--dim 64 --heads 1 --depth 6) ;;
-    wide) extra=(--dim 96 --heads 2 --depth 6) ;;
+    depth6) extra=(--dim 64 --heads 2 --depth 6) ;;
+    wide) extra=(--dim 96 --heads 3 --depth 4) ;;
     *) echo "unknown arm $arm" >&2; exit 2 ;;
   esac
   python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1
