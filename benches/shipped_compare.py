@@ -97,19 +97,8 @@ def main() -> None:
     except ImportError as e:
         print(f"no LighterGlue row: {e}", file=sys.stderr)
 
-    # Latency: every matcher on every pair, alternated, `repeat` rounds after a warm-up.
     every = [p for ps in pairs.values() for p in ps]
-    times = {name: [] for name in matchers}
-    for f0, f1 in every[:2]:
-        for fn in matchers.values():
-            fn(f0, f1)
-    for _ in range(args.repeat):
-        for f0, f1 in every:
-            for name, fn in matchers.items():
-                t = time.perf_counter()
-                fn(f0, f1)
-                times[name].append(time.perf_counter() - t)
-    latency = {name: statistics.median(ts) for name, ts in times.items()}
+    latency = alternated_medians(matchers, every, args.repeat)
     ref = latency.get("LighterGlue (PyTorch)")
     print(f"\n{'matcher':<28}{'median ms':>10}{'vs LighterGlue':>16}")
     for name, s in latency.items():
@@ -168,6 +157,22 @@ def main() -> None:
             "speedup_vs_lighterglue": {k: ref / v for k, v in latency.items()} if ref else None,
             "bf16_same_matches": agree, "match_many": many, "cli_match_ms": cli,
         }, indent=1) + "\n")
+
+
+def alternated_medians(matchers: dict, pairs: list, repeat: int) -> dict:
+    """Median seconds per call of every matcher ``fn(f0, f1)``: all matchers on every pair in
+    turn (the same machine state for each), ``repeat`` rounds after a warm-up on two pairs."""
+    times = {name: [] for name in matchers}
+    for f0, f1 in pairs[:2]:
+        for fn in matchers.values():
+            fn(f0, f1)
+    for _ in range(repeat):
+        for f0, f1 in pairs:
+            for name, fn in matchers.items():
+                t = time.perf_counter()
+                fn(f0, f1)
+                times[name].append(time.perf_counter() - t)
+    return {name: statistics.median(ts) for name, ts in times.items()}
 
 
 def first(f: dict, k: int) -> dict:
