@@ -10,7 +10,7 @@ the ratio to LighterGlue is what the issue's latency budget reads (at most 0.5).
     python benches/config_latency.py --config h2=64,2,4 --config unshared=64,2,4,qkv,merge
 
 A config is NAME=DIM,HEADS,DEPTH[,SWITCH...], SWITCH one of qkv, merge, attention_weights
-(turned off); Sinkhorn runs the shipped model's iterations. Latency does not depend on the
+(turned off); Sinkhorn runs the shipped model's iterations unless --sinkhorn says. Latency does not depend on the
 weights' values (the engine has no data-dependent paths besides the match count).
 """
 from __future__ import annotations
@@ -53,6 +53,8 @@ def main() -> None:
     ap.add_argument("--keypoints", type=int, default=2048)
     ap.add_argument("--repeat", type=int, default=3, help="timed rounds over the pairs")
     ap.add_argument("--config", action="append", help=f"candidate (repeatable; default {DEFAULT_CONFIGS})")
+    ap.add_argument("--sinkhorn", type=int, default=None,
+                    help="Sinkhorn iterations of the candidates (default: the shipped model's)")
     ap.add_argument("--no-lighterglue", action="store_true")
     ap.add_argument("--shared", default=str(ROOT.parent / "shared" / "data"))
     ap.add_argument("--json", help="write the results here")
@@ -79,7 +81,7 @@ def main() -> None:
     pairs = [(paraformer.extract(a, args.keypoints), paraformer.extract(b, args.keypoints)) for a, b in paths]
 
     shipped = paraformer.Matcher.pretrained("paraformer-xfeat")
-    iters = shipped.config["sinkhorn_iterations"]
+    iters = args.sinkhorn or shipped.config["sinkhorn_iterations"]
     matchers = {}
     for p in ("fp32", "bf16"):
         m = paraformer.Matcher.pretrained("paraformer-xfeat", precision=p)

@@ -11,7 +11,7 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 PAIRS=${PAIRS:-10240}
-ARMS=${ARMS:-"control unshared layer_loss depth6 wide"}
+ARMS=${ARMS:-"control unshared layer_loss depth6 wide wide_layer_loss"}
 OUT=runs/compare_capacity
 common=(--preset paraformer --fixed-pool runs/finetune_pool --reuse 2 --pairs "$PAIRS"
         --keypoints 512x8:0.75,1024x4:0.25 --lr 5e-4 --warmup 1000 --ema 0.99 --val-every $((PAIRS / 2))
@@ -24,6 +24,7 @@ for arm in $ARMS; do
     layer_loss) extra=(--dim 64 --heads 2 --depth 4 --layer-loss) ;;
     depth6) extra=(--dim 64 --heads 2 --depth 6) ;;
     wide) extra=(--dim 96 --heads 3 --depth 4) ;;
+    wide_layer_loss) extra=(--dim 96 --heads 3 --depth 4 --layer-loss) ;;
     *) echo "unknown arm $arm" >&2; exit 2 ;;
   esac
   python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1

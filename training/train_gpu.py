@@ -52,7 +52,7 @@ from train import LayerHeads, load_init, matching_losses, model_config, parse_sc
 MODELS = {
     "paraformer-xfeat": ("paraformer", 64, 2, 4, 5e-4),
     "paraformer-xfeat-depth6": ("paraformer", 64, 2, 6, 5e-4),
-    "paraformer-xfeat-width96": ("paraformer", 96, 2, 4, 5e-4),
+    "paraformer-xfeat-width96": ("paraformer", 96, 3, 4, 5e-4),  # 3 heads: width 32, a fused-kernel width
     "paraformer-xfeat-unshared": ("paraformer", 64, 2, 4, 5e-4),  # separate self/cross q/k/v and merges
     "paraformer-u-xfeat": ("paraformer_u", 64, 2, 4, 5e-4),
     "paraformer-xfeat-large": ("paraformer", 256, 4, 9, 2e-4),  # the paper's width and depth
