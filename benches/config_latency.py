@@ -9,8 +9,8 @@ the ratio to LighterGlue is what the issue's latency budget reads (at most 0.5).
     python benches/config_latency.py --threads 2 --json benches/results/config_latency_2threads.json
     python benches/config_latency.py --config h2=64,2,4 --config unshared=64,2,4,qkv,merge
 
-A config is NAME=DIM,HEADS,DEPTH[,SWITCH...], SWITCH one of qkv, merge, attention_weights
-(turned off); Sinkhorn runs the shipped model's iterations unless --sinkhorn says. Latency does not depend on the
+A config is NAME=DIM,HEADS,DEPTH[,SWITCH...], SWITCH one of ``train.py --unshare``'s
+(qkv, merge, attention_weights: turned off); Sinkhorn runs the shipped model's iterations unless --sinkhorn says. Latency does not depend on the
 weights' values (the engine has no data-dependent paths besides the match count).
 """
 from __future__ import annotations
@@ -23,13 +23,13 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-SWITCHES = ("qkv", "merge", "attention_weights")
+sys.path.insert(0, str(ROOT / "training"))
 DEFAULT_CONFIGS = ["h2=64,2,4", "unshared=64,2,4,qkv,merge", "depth6=64,2,6", "depth6_h1=64,1,6", "width96_h3=96,3,4",
                    "width96_h2=96,2,4", "lighterglue_size=96,2,6"]
 
 
 def parse_config(text: str) -> tuple[str, dict]:
-    """``NAME=DIM,HEADS,DEPTH[,SWITCH...]`` → (name, the model config's ParaFormer keys)."""
+    """``NAME=DIM,HEADS,DEPTH[,SWITCH...]`` → (name, the model config ``train.py`` would train)."""
     name, sep, spec = text.partition("=")
     fields = spec.split(",")
     if not sep or not name or len(fields) < 3:
@@ -38,12 +38,16 @@ def parse_config(text: str) -> tuple[str, dict]:
         dim, heads, depth = (int(v) for v in fields[:3])
     except ValueError:
         raise SystemExit(f"error: --config {text!r}: DIM, HEADS and DEPTH must be integers") from None
-    bad = [s for s in fields[3:] if s not in SWITCHES]
-    if bad or dim % heads:
-        raise SystemExit(f"error: --config {text!r}: unknown switches {bad} (expected {list(SWITCHES)}) "
-                         f"or DIM not a multiple of HEADS")
-    cfg = {"model": "paraformer", "descriptor_dim": 64, "dim": dim, "num_heads": heads, "num_layers": depth,
-           "parallel": {f"share_{s}": s not in fields[3:] for s in SWITCHES}}
+    if heads < 1 or dim % heads:
+        raise SystemExit(f"error: --config {text!r}: DIM must be a multiple of HEADS")
+    from train import model_config  # training/train.py: the config a run trains (imports torch)
+
+    try:
+        cfg = model_config({"preset": "paraformer", "dim": dim, "heads": heads, "depth": depth, "sinkhorn": 0,
+                            "unshare": fields[3:]})
+    except ValueError as e:
+        raise SystemExit(f"error: --config {text!r}: {e}") from None
+    del cfg["sinkhorn_iterations"]  # main sets the run's
     return name, cfg
 
 
@@ -59,14 +63,13 @@ def main() -> None:
     ap.add_argument("--shared", default=str(ROOT.parent / "shared" / "data"))
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args()
-    configs = [parse_config(c) for c in (args.config or DEFAULT_CONFIGS)]
     for var in ("RAYON_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(args.threads)
+    configs = [parse_config(c) for c in (args.config or DEFAULT_CONFIGS)]
     import torch
 
     import paraformer
 
-    sys.path.insert(0, str(ROOT / "training"))
     from paraformer_train import Matcher as TorchMatcher, save_safetensors
     from shipped_compare import alternated_medians  # benches/, beside this script
 

@@ -58,7 +58,7 @@ def main() -> None:
     from paraformer import geometry as g
     from paraformer_train import evalsets as ev
     from paraformer_train import stream
-    from train import precision_recall  # the validation's own counting
+    from train import precision_recall, prf  # the validation's own counting
 
     matchers = [("mutual NN", lambda f0, f1: g.match_baseline(f0["descriptors"], f1["descriptors"], "mnn"))]
     if args.lighterglue:
@@ -83,6 +83,12 @@ def main() -> None:
                       "image_size": shard.image_size[i][v].astype(np.float32)} for v in (0, 1)]
             pairs.append((feats[0], feats[1], bt["gt0"][0], int(shard.kind[i]), shard.H[i], shard.image_size[i][0]))
     print(f"{len(pairs)} holdout pairs ({sum(p[3] == 0 for p in pairs)} synthetic) at {args.keypoints} keypoints", flush=True)
+    # The viewpoint bins of each synthetic pair (none without --by-viewpoint), and their sizes.
+    views = [viewpoint_bins(h, size) if kind == 0 and args.by_viewpoint else [] for _, _, _, kind, h, size in pairs]
+    bin_pairs: dict[str, int] = {}
+    for keys in views:
+        for key in keys:
+            bin_pairs[key] = bin_pairs.get(key, 0) + 1
 
     rows = []
     for label, match in matchers:
@@ -90,56 +96,40 @@ def main() -> None:
         counts = {0: [0, 0, 0], 1: [0, 0, 0]}
         errors: list[list[float]] = [[] for _ in range(args.ransac_seeds)]
         bins: dict[str, list[int]] = {}
-        for f0, f1, gt0, kind, h, size in pairs:
+        for (f0, f1, gt0, kind, h, size), keys in zip(pairs, views):
             m0 = np.asarray(match(f0, f1), np.int64)
             c = precision_recall(torch.from_numpy(m0), gt0)
             counts[kind] = [a + b for a, b in zip(counts[kind], c)]
-            if kind == 0 and args.by_viewpoint:
-                for key in viewpoint_bins(h, size):
-                    bins[key] = [a + b for a, b in zip(bins.get(key, [0, 0, 0]), c)]
+            for key in keys:
+                bins[key] = [a + b for a, b in zip(bins.get(key, [0, 0, 0]), c)]
             if kind == 0:
                 ok = m0 >= 0
                 for s in range(args.ransac_seeds):
                     errors[s].append(ev.corner_error(f0["keypoints"][ok], f1["keypoints"][m0[ok]], h, size[0], size[1], seed=s))
         row = {"matcher": label, "seconds": round(time.time() - t0, 1)}
         for kind, name in ((0, "synthetic"), (1, "real")):
-            tp, npred, ngt = counts[kind]
-            p, r = tp / max(npred, 1), tp / max(ngt, 1)
-            row[name] = {"precision": 100 * p, "recall": 100 * r, "f1": 100 * 2 * p * r / max(p + r, 1e-12),
-                         "matches": npred}
+            p, r, f1 = prf(*counts[kind])
+            row[name] = {"precision": 100 * p, "recall": 100 * r, "f1": 100 * f1, "matches": counts[kind][1]}
         aucs = np.array([[100 * a for a in g.pose_auc(e, [1, 3, 5])] for e in errors])
         row["synthetic"]["auc_1_3_5px"] = aucs.mean(0).tolist()
         row["synthetic"]["auc_sd"] = aucs.std(0).tolist()
         if bins:
-            row["synthetic_f1_by_viewpoint"] = {k: {"pairs": 0, "f1": f1_of(*bins[k])} for k in sorted(bins)}
+            row["synthetic_f1_by_viewpoint"] = {k: {"pairs": bin_pairs[k], "f1": 100 * prf(*bins[k])[2]} for k in sorted(bins)}
         rows.append(row)
         s, r = row["synthetic"], row["real"]
         print(f"{label:40s} synthetic P/R/F1 {s['precision']:.1f}/{s['recall']:.1f}/{s['f1']:.1f} "
               f"AUC@1/3/5 {'/'.join(f'{a:.1f}' for a in s['auc_1_3_5px'])}  real P/R/F1 "
               f"{r['precision']:.1f}/{r['recall']:.1f}/{r['f1']:.1f}  ({row['seconds']} s)", flush=True)
-    if args.by_viewpoint:
-        counts_per_bin: dict[str, int] = {}
-        for _, _, _, kind, h, size in pairs:
-            if kind == 0:
-                for key in viewpoint_bins(h, size):
-                    counts_per_bin[key] = counts_per_bin.get(key, 0) + 1
-        keys = sorted(counts_per_bin)
-        print("\nsynthetic F1 by viewpoint change (pairs per bin: "
-              + ", ".join(f"{k} {counts_per_bin[k]}" for k in keys) + ")")
+    if bin_pairs:
+        keys = sorted(bin_pairs)
+        print("\nsynthetic F1 by viewpoint change (pairs per bin: " + ", ".join(f"{k} {bin_pairs[k]}" for k in keys) + ")")
         for row in rows:
-            for k in keys:
-                row["synthetic_f1_by_viewpoint"][k]["pairs"] = counts_per_bin[k]
             print(f"{row['matcher']:40s} " + "  ".join(f"{k} {row['synthetic_f1_by_viewpoint'][k]['f1']:.1f}" for k in keys))
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
         with open(args.json, "w") as f:
             json.dump({"command": " ".join(sys.argv), "keypoints": args.keypoints, "pairs": len(pairs),
                        "ransac_seeds": args.ransac_seeds, "rows": rows}, f, indent=1)
-
-
-def f1_of(tp: int, npred: int, ngt: int) -> float:
-    p, r = tp / max(npred, 1), tp / max(ngt, 1)
-    return 100 * 2 * p * r / max(p + r, 1e-12)
 
 
 def viewpoint_bins(h: np.ndarray, size) -> list[str]:

@@ -38,8 +38,10 @@ from paraformer_train.model import (Matcher, extract_matches, log_optimal_transp
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare")
-# What runs saved before an argument existed trained with (resume compares against these).
-MODEL_ARG_DEFAULTS = {"unshare": []}
+# A resume refuses a change of these (the model's, and --layer-loss, whose heads are in the
+# optimiser's state); runs saved before an argument existed trained with its default here.
+RESUME_ARGS = MODEL_ARGS + ("layer_loss",)
+RESUME_DEFAULTS = {"unshare": [], "layer_loss": False}
 SHARING = ("qkv", "merge", "attention_weights")
 
 
@@ -95,18 +97,13 @@ def unshare_state(state: dict, own: dict) -> dict:
     """``state`` with shared q/k/v projections or merges (``attn.proj.*``, ``attn.merge.*``)
     copied into both the self and the cross tensors where the model has them separate (SPEC
     §5 switches off): the unshared model starts as the shared one and computes the same."""
-    out = dict(state)
-    for key in own:
-        for part in ("proj", "merge"):
-            for side in ("self", "cross"):
-                tag = f".attn.{side}_{part}"
-                if tag in key and key not in state:
-                    shared = key.replace(tag, f".attn.{part}")
-                    if shared in state:
-                        out[key] = state[shared].clone()
-    for key in state:
-        if (".attn.proj." in key or ".attn.merge." in key) and key not in own and key.replace(".attn.", ".attn.self_") in out:
-            del out[key]
+    out = {}
+    for key, value in state.items():
+        split = [key.replace(".attn.", f".attn.{side}_") for side in ("self", "cross")]
+        if (".attn.proj." in key or ".attn.merge." in key) and key not in own and all(k in own for k in split):
+            out.update({k: value.clone() for k in split})
+        else:
+            out[key] = value
     return out
 
 
@@ -188,6 +185,12 @@ def precision_recall(pred0: torch.Tensor, gt0: torch.Tensor) -> tuple[int, int, 
     return tp, predicted.sum().item(), (gt0 >= 0).sum().item()
 
 
+def prf(tp: int, npred: int, ngt: int) -> tuple[float, float, float]:
+    """Precision, recall and F1 (fractions) of ``precision_recall``'s counts."""
+    p, r = tp / max(npred, 1), tp / max(ngt, 1)
+    return p, r, 2 * p * r / max(p + r, 1e-12)
+
+
 def lr_at(pairs: int, total: int, warmup: int, peak: float, decay_from: float = 0.6) -> float:
     """Linear warm-up over ``warmup`` pairs, constant, then cosine to 10% over the last
     ``1 − decay_from`` of ``total`` pairs."""
@@ -239,9 +242,9 @@ def validate(model: Matcher, shards: list[stream.Shard], keypoints: int, thresho
                 errors.append(corner_error(bt["keypoints0"][0].numpy()[ok], bt["keypoints1"][0].numpy()[m0[ok]],
                                            shard.H[i], w, h))
     model.train()
-    p, r = tp / max(npred, 1), tp / max(ngt, 1)
+    p, r, f1 = prf(tp, npred, ngt)
     out = {f"val_loss@{keypoints}": loss / max(n, 1), f"precision@{keypoints}": p, f"recall@{keypoints}": r,
-           f"f1@{keypoints}": 2 * p * r / max(p + r, 1e-12)}
+           f"f1@{keypoints}": f1}
     if auc:
         # Exact AUC of the corner-error CDF up to t px (the evaluation harness's rule).
         for t, a in zip((1, 3, 5), g.pose_auc(errors, (1, 3, 5))):
@@ -336,10 +339,8 @@ def main() -> None:
     state = torch.load(ckpt, weights_only=False) if os.path.exists(ckpt) else None
     if state is not None:
         saved = state["args"]
-        changed = {k: (saved.get(k, MODEL_ARG_DEFAULTS.get(k)), getattr(args, k)) for k in MODEL_ARGS
-                   if saved.get(k, MODEL_ARG_DEFAULTS.get(k)) != getattr(args, k)}
-        if saved.get("layer_loss", False) != args.layer_loss:  # its heads are in the optimiser's state
-            changed["layer_loss"] = (saved.get("layer_loss", False), args.layer_loss)
+        was = {k: saved.get(k, RESUME_DEFAULTS.get(k)) for k in RESUME_ARGS}
+        changed = {k: (was[k], getattr(args, k)) for k in RESUME_ARGS if was[k] != getattr(args, k)}
         if changed:
             sys.exit(f"error: {ckpt} was trained with other model arguments: {changed}")
     torch.manual_seed(args.seed)
