@@ -343,6 +343,44 @@ def test_layer_loss_ends_with_the_models_own_loss():
         u.layer_states(*u.encode_pair(data))
 
 
+def test_bf16_forward_keeps_the_loss_and_its_gradient():
+    """`--bf16`: the forward under bfloat16 autocast gives an fp32 loss within bf16 rounding
+    of the fp32 one and a gradient pointing the same way, with or without layer heads;
+    the default path is untouched by autocast."""
+    from train import LayerHeads, matching_losses, model_config
+    from paraformer_train.model import Matcher, log_optimal_transport_last_grad
+
+    torch.manual_seed(2)
+    model = Matcher(model_config({"preset": "paraformer", "dim": 48, "heads": 3, "depth": 2, "sinkhorn": 20})).train()
+    data = _random_pair(seed=5)
+    data["gt0"] = torch.randint(-2, 33, (2, 40))
+    data["gt1"] = torch.randint(-2, 0, (2, 33))
+
+    def loss_and_grad(heads, bf16):
+        model.zero_grad(set_to_none=True)
+        losses = matching_losses(model, heads, data, log_optimal_transport_last_grad, 20, bf16)
+        sum(losses).backward()
+        return losses, torch.cat([p.grad.flatten() for p in model.parameters() if p.grad is not None])
+
+    for heads in (None, LayerHeads(model)):
+        (l32, g32), (l16, g16) = loss_and_grad(heads, False), loss_and_grad(heads, True)
+        assert all(x.dtype == torch.float32 for x in l16)
+        assert abs(float(l16[-1]) - float(l32[-1])) < 2e-2 * float(l32[-1])
+        assert float(g16 @ g32 / (g16.norm() * g32.norm())) > 0.99
+        assert not torch.equal(g16, g32)  # autocast did change the arithmetic
+    again = loss_and_grad(None, False)
+    assert torch.equal(again[1], loss_and_grad(None, False)[1])
+    # As in the engine's bf16 path, the positional phase and the score matrix stay fp32.
+    seen = {}
+    hooks = [m.register_forward_hook(lambda mod, i, o, k=k: seen.__setitem__(k, o.dtype))
+             for k, m in (("phase", model.wave_pe.phase), ("amplitude", model.wave_pe.amplitude))]
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert model.scores(data).dtype == torch.float32
+    for h in hooks:
+        h.remove()
+    assert seen == {"phase": torch.float32, "amplitude": torch.bfloat16}
+
+
 def test_gpu_trainee_grows_and_resumes_with_a_loss_on_every_layer(tmp_path):
     """train_gpu's depth-6 model with `+layer-loss`: grown from a 4-layer checkpoint (same
     scores at the start), one step on the CPU, saved with its layer heads, resumed."""

@@ -3,11 +3,19 @@
   * before: explicit softmax attention, autograd through all Sinkhorn iterations
     (the step of the first shipped weights);
   * after: fused ``scaled_dot_product_attention`` and gradients through the last Sinkhorn
-    iteration only, the earlier ones in the scaling domain without autograd (``train.py``).
+    iteration only, the earlier ones in the scaling domain without autograd (``train.py``);
+  * after + bf16: the same with the network's forward under bfloat16 autocast
+    (``train.py --bf16``).
 
 Same model config, same batches (XFeat pairs from the stream), forward + backward + AdamW.
+``--weights`` starts every variant from a ``train.py`` checkpoint instead of random
+weights; before the timed steps, the cosine between each variant's gradient and that of
+``train.py``'s default step ("after") on the same batch is printed, beside the cosine between two batches' gradients
+(the size of the noise that an approximation has to stay well inside).
 
     python training/bench_step.py --dim 64 --heads 4 --depth 4 --batch 8 --keypoints 512
+    python training/bench_step.py --dim 96 --heads 3 --depth 4 --batch 4 --keypoints 1024 \
+        --weights training/checkpoints/paraformer-xfeat-w96/last.pt
 """
 from __future__ import annotations
 
@@ -39,6 +47,7 @@ def main() -> None:
     ap.add_argument("--sinkhorn", type=int, default=50)
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--weights", default=None, help="train.py checkpoint (last.pt) to start from")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -51,24 +60,53 @@ def main() -> None:
     batches = [stream.collate([(shard, b * args.batch + i) for i in range(args.batch)], args.keypoints,
                               [False] * args.batch) for b in range(2)]
     cfg = preset(args.preset, args.dim, args.depth, args.heads) | {"sinkhorn_iterations": args.sinkhorn}
-    variants = {
-        "before (explicit attention, full Sinkhorn autograd)": (False, log_optimal_transport),
-        "after (SDPA, last-iteration Sinkhorn gradient)": (True, log_optimal_transport_last_grad),
+    variants = {  # name: (fused attention, Sinkhorn, bf16 autocast)
+        "before (explicit attention, full Sinkhorn autograd)": (False, log_optimal_transport, False),
+        "after (SDPA, last-iteration Sinkhorn gradient)": (True, log_optimal_transport_last_grad, False),
+        "after + bf16 autocast (train.py --bf16)": (True, log_optimal_transport_last_grad, True),
     }
+    start = torch.load(args.weights, weights_only=False)["model"] if args.weights else None
     models = {}
     for name in variants:
         torch.manual_seed(0)
         m = Matcher(cfg).train()
+        if start is not None:
+            m.load_state_dict(start)
         models[name] = (m, torch.optim.AdamW(m.parameters(), lr=1e-4))
     times = {name: [] for name in variants}
 
-    def step(name: str, bt: dict) -> float:
-        fused, sinkhorn = variants[name]
+    def loss_of(name: str, bt: dict) -> torch.Tensor:
+        fused, sinkhorn, bf16 = variants[name]
         model_mod.FUSED_ATTENTION = fused
+        m = models[name][0]
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            scores = m.scores(bt)
+        return nll_loss(sinkhorn(scores.float(), m.bin_score, args.sinkhorn), bt["gt0"], bt["gt1"])
+
+    def gradient(name: str, bt: dict) -> torch.Tensor:
+        m = models[name][0]
+        m.zero_grad(set_to_none=True)
+        loss_of(name, bt).backward()
+        return torch.cat([p.grad.flatten() for p in m.parameters() if p.grad is not None])
+
+    def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
+        return float(a @ b / (a.norm() * b.norm()))
+
+    # Gradient agreement before any step (all variants hold the same weights), against the
+    # step train.py takes by default; the lower of the two batches.
+    base = list(variants)[1]
+    ref = [gradient(base, bt) for bt in batches]
+    agreement = {"two batches, one variant": cosine(ref[0], ref[1])}
+    for name in variants:
+        if name != base:
+            agreement[name] = min(cosine(gradient(name, bt), r) for bt, r in zip(batches, ref))
+    for name, c in agreement.items():
+        print(f"gradient cosine to '{base}', {name}: {c:.5f}")
+
+    def step(name: str, bt: dict) -> float:
         m, opt = models[name]
         t = time.perf_counter()
-        logp = sinkhorn(m.scores(bt), m.bin_score, args.sinkhorn)
-        loss = nll_loss(logp, bt["gt0"], bt["gt1"])
+        loss = loss_of(name, bt)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(m.parameters(), 1.0)
@@ -90,7 +128,7 @@ def main() -> None:
         print(f"{name:55s} {r['s_per_step']:.3f} s/step  {r['pairs_per_s']:.1f} pairs/s  {r['speedup']:.2f}x")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"args": vars(args), "config": cfg, "results": res}, f, indent=1)
+            json.dump({"args": vars(args), "config": cfg, "results": res, "gradient_cosine": agreement}, f, indent=1)
 
 
 if __name__ == "__main__":

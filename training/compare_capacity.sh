@@ -25,6 +25,9 @@ for arm in $ARMS; do
     depth6) extra=(--dim 64 --heads 2 --depth 6) ;;
     wide) extra=(--dim 96 --heads 3 --depth 4) ;;
     wide_layer_loss) extra=(--dim 96 --heads 3 --depth 4 --layer-loss) ;;
+    # The wide arm with its forward under bf16 autocast (~1.2x pairs/s): kept for the long
+    # run only if it ends no worse than wide on the same batches.
+    wide_bf16) extra=(--dim 96 --heads 3 --depth 4 --bf16) ;;
     *) echo "unknown arm $arm" >&2; exit 2 ;;
   esac
   python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1

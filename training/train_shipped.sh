@@ -21,5 +21,8 @@ mkdir -p runs
 # --pairs sets the learning-rate schedule: constant, then cosine to 10% from 60% of it. For
 # the 64-wide runs it was 400,000 until 50,000 pairs; validation had been flat since 10,000
 # (F1@512 0.51-0.54) at the constant rate, so they anneal at 60,000-100,000.
+# --bf16: the forward under bfloat16 autocast, 1.16-1.26x pairs/s (bench_step.py) at equal
+# validation loss (compare_capacity.sh arm wide_bf16); the w96 run uses it from pair 5,432.
 exec python train.py --run "checkpoints/$name" "${model[@]}" --sinkhorn 50 --pairs "$pairs" \
-  --keypoints 512x8:0.55,1024x4:0.3,2048x2:0.15 --lr 5e-4 --warmup 4000 --ckpt-minutes 10 --val-every 10000 "$@"
+  --keypoints 512x8:0.55,1024x4:0.3,2048x2:0.15 --lr 5e-4 --warmup 4000 --ckpt-minutes 10 --val-every 10000 \
+  --bf16 "$@"

@@ -88,7 +88,9 @@ class KeypointEncoder(nn.Module):
         self.encoder = mlp([3, 32, 64, 128, 256, c])
 
     def forward(self, desc, pos):
-        return desc + self.encoder(pos)
+        with torch.autocast(pos.device.type, enabled=False):  # positions stay fp32 (see WavePE)
+            enc = self.encoder(pos.to(self.encoder[0].weight.dtype))
+        return desc + enc
 
 
 class WavePE(nn.Module):
@@ -99,7 +101,11 @@ class WavePE(nn.Module):
         self.fuse = mlp([2 * c, 4 * c, c])
 
     def forward(self, desc, pos):
-        a, theta = self.amplitude(desc), self.phase(pos)
+        a = self.amplitude(desc)
+        # Under bf16 autocast (train.py --bf16) the phase stays fp32, as in the engine's bf16
+        # path: it reads keypoint positions, and a bf16 phase would blur them.
+        with torch.autocast(pos.device.type, enabled=False):
+            theta = self.phase(pos.to(self.phase[0].weight.dtype))
         return desc + self.fuse(torch.cat([a * torch.cos(theta), a * torch.sin(theta)], -1))
 
 
@@ -413,9 +419,10 @@ def extract_matches(p, threshold: float):
 
 
 def pair_scores(proj: nn.Linear, x, y):
-    """SPEC §8 score matrix ⟨proj(x_i), proj(y_j)⟩ / √C."""
-    mx, my = proj(x), proj(y)
-    return mx @ my.transpose(1, 2) / math.sqrt(mx.shape[-1])
+    """SPEC §8 score matrix ⟨proj(x_i), proj(y_j)⟩ / √C (fp32 even under bf16 autocast)."""
+    with torch.autocast(x.device.type, enabled=False):
+        mx, my = proj(x.to(proj.weight.dtype)), proj(y.to(proj.weight.dtype))
+        return mx @ my.transpose(1, 2) / math.sqrt(mx.shape[-1])
 
 
 class Matcher(nn.Module):
