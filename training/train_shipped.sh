@@ -23,6 +23,9 @@ mkdir -p runs
 # (F1@512 0.51-0.54) at the constant rate, so they anneal at 60,000-100,000.
 # --bf16: the forward under bfloat16 autocast, 1.16-1.26x pairs/s (bench_step.py) at equal
 # validation loss (compare_capacity.sh arm wide_bf16); the w96 run uses it from pair 5,432.
+# --ema-warmup: the w96 run started from scratch with a fixed EMA decay of 0.999, whose
+# weights at 10,002 pairs were still 19% random init (val loss @512 1.751 against the trained
+# weights' 1.237); from pair ~10,300 the decay rises from 0.995 to 0.999 instead.
 exec python train.py --run "checkpoints/$name" "${model[@]}" --sinkhorn 50 --pairs "$pairs" \
   --keypoints 512x8:0.55,1024x4:0.3,2048x2:0.15 --lr 5e-4 --warmup 4000 --ckpt-minutes 10 --val-every 10000 \
-  --bf16 "$@"
+  --bf16 --ema-warmup "$@"
