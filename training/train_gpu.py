@@ -44,7 +44,7 @@ sys.path.insert(0, HERE)
 from paraformer_train import data  # noqa: E402
 from paraformer_train.labels import ground_truth  # noqa: E402
 from paraformer_train.model import Matcher, log_optimal_transport_last_grad  # noqa: E402
-from train import LayerHeads, load_init, matching_losses, model_config, parse_schedule  # noqa: E402
+from train import LayerHeads, ema_decay, load_init, matching_losses, model_config, parse_schedule  # noqa: E402
 
 # The models this script knows: (preset, dim, heads, depth, peak learning rate). The
 # depth-6 and width-96 variants are the capacity comparison at equal pairs (training/README,
@@ -299,7 +299,9 @@ class Trainee:
         torch.nn.utils.clip_grad_norm_(self.trained, 1.0)
         self.opt.step()
         with torch.no_grad():
-            torch._foreach_lerp_(self.ema_params, self.params, 1.0 - self.ema_decay)
+            # Warmed-up decay (train.ema_decay): a model from scratch must not validate its init.
+            decay = ema_decay(self.ema_decay, self.steps, warmup=True)
+            torch._foreach_lerp_(self.ema_params, self.params, 1.0 - decay)
             torch._foreach_copy_(self.ema_buffers, self.buffers)  # BatchNorm statistics: as trained
         self.losses.append(losses[-1].detach())  # the last layer's: comparable across models
         self.steps += 1
