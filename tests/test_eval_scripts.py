@@ -121,3 +121,20 @@ def test_summarize_runs_table_and_bad_folders(tmp_path, capsys):
     assert capsys.readouterr().out.count("| control") == 1
     assert mod.main([str(empty)]) == 2
     assert "none of the folders" in capsys.readouterr().err
+
+
+def test_holdout_peers_shuffles_positions_only():
+    """holdout_peers.py --shuffle-positions: the keypoints are a permutation of the true ones
+    (fixed per view and count, different between the views), everything else is untouched."""
+    shuffled = load(ROOT / "training" / "holdout_peers.py", "holdout_peers_under_test").shuffled
+    rng = np.random.default_rng(0)
+    feats = {"keypoints": rng.uniform(0, 600, (50, 2)).astype(np.float32), "scores": rng.random(50).astype(np.float32),
+             "descriptors": rng.standard_normal((50, 64)).astype(np.float32), "image_size": np.array([640, 480], np.float32)}
+    a, b = shuffled(feats, 0), shuffled(feats, 1)
+    for out in (a, b):
+        assert out["scores"] is feats["scores"] and out["descriptors"] is feats["descriptors"]
+        assert sorted(map(tuple, out["keypoints"])) == sorted(map(tuple, feats["keypoints"]))
+        assert (out["keypoints"] != feats["keypoints"]).any(axis=1).mean() > 0.9
+    assert (a["keypoints"] != b["keypoints"]).any()
+    assert np.array_equal(shuffled(feats, 0)["keypoints"], a["keypoints"])
+    assert feats["keypoints"].flags["C_CONTIGUOUS"] and a["keypoints"].flags["C_CONTIGUOUS"]

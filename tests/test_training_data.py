@@ -484,3 +484,36 @@ def test_ema_warmup_forgets_the_random_init():
     init_share = lambda warm: float(np.prod([ema_decay(0.999, s, warm) for s in range(1672)]))  # noqa: E731
     assert init_share(False) == pytest.approx(0.188, abs=0.002)
     assert init_share(True) < 1e-6
+
+
+def test_phase_gain_spreads_the_wave_pe_frequencies_and_names_misuse(tmp_path):
+    """`--phase-gain LO HI`: row j of the phase MLP's last Linear is scaled by a geometric
+    series from LO to HI (the rest of the init is untouched); a model without Wave-PE, bad
+    gains and a combination with --init are refused with the reason."""
+    import subprocess
+
+    import train
+    from paraformer_train.model import Matcher
+
+    cfg = train.model_config(dict(preset="paraformer", dim=32, depth=2, heads=2, sinkhorn=10))
+    torch.manual_seed(0)
+    plain = Matcher(cfg)
+    torch.manual_seed(0)
+    gained = Matcher(cfg)
+    train.phase_gain_init(gained, 2.0, 50.0)
+    w0, w1 = plain.wave_pe.phase[-1].weight, gained.wave_pe.phase[-1].weight
+    ratio = (w1 / w0)[:, 0].detach()
+    assert float(ratio[0]) == pytest.approx(2.0) and float(ratio[-1]) == pytest.approx(50.0)
+    assert torch.allclose(ratio[1:] / ratio[:-1], (ratio[1] / ratio[0]).expand(31), rtol=1e-4)
+    assert torch.allclose(gained.wave_pe.phase[-1].bias.detach(), plain.wave_pe.phase[-1].bias.detach() * ratio)
+    same = [k for k, v in plain.state_dict().items() if not k.startswith("wave_pe.phase.3")]
+    assert all(torch.equal(plain.state_dict()[k], gained.state_dict()[k]) for k in same)
+    sg = Matcher(train.model_config(dict(preset="superglue", dim=32, depth=2, heads=2, sinkhorn=10)))
+    with pytest.raises(ValueError, match="Wave-PE"):
+        train.phase_gain_init(sg, 1.0, 2.0)
+    script = str(Path(train.__file__))
+    for extra, needle in ((["--phase-gain", "5", "2"], "0 < LO <= HI"),
+                          (["--phase-gain", "1", "2", "--init", str(tmp_path / "w.pt")], "fresh start")):
+        out = subprocess.run([sys.executable, script, "--run", str(tmp_path / "run"), "--dim", "32", *extra],
+                             capture_output=True, text=True)
+        assert out.returncode != 0 and needle in out.stderr, (extra, out.stderr)

@@ -28,6 +28,11 @@ for arm in $ARMS; do
     # The wide arm with its forward under bf16 autocast (~1.2x pairs/s): kept for the long
     # run only if it ends no worse than wide on the same batches.
     wide_bf16) extra=(--dim 96 --heads 3 --depth 4 --bf16) ;;
+    # Geometry (holdout_peers.py --shuffle-positions: the trained models barely use keypoint
+    # positions where LighterGlue depends on them): a higher-frequency Wave-PE phase at init,
+    # and self/cross q/k/v + merges not shared, so cross-attention need not read positions.
+    wide_phase) extra=(--dim 96 --heads 3 --depth 4 --phase-gain 2 100) ;;
+    wide_unshared) extra=(--dim 96 --heads 3 --depth 4 --unshare qkv merge) ;;
     *) echo "unknown arm $arm" >&2; exit 2 ;;
   esac
   python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1

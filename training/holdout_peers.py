@@ -11,7 +11,9 @@ RGB-D tails) with the training labels; this scores mutual NN, LighterGlue and we
 
 Per matcher and pair kind (synthetic, real): precision, recall and F1 over the labelled
 keypoints (ignored ones left out, as in ``train.py``), and on synthetic pairs the homography
-AUC@1/3/5px averaged over RANSAC seeds.
+AUC@1/3/5px averaged over RANSAC seeds. ``--shuffle-positions`` adds each learned matcher
+again with the keypoint positions it reads shuffled within each image: what it loses then is
+what it gets from geometry rather than from descriptors.
 """
 from __future__ import annotations
 
@@ -38,6 +40,10 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--by-viewpoint", action="store_true",
                     help="also synthetic F1 per bin of relative rotation and scale change (where matchers part)")
+    ap.add_argument("--shuffle-positions", action="store_true",
+                    help="also score each learned matcher with every image's keypoint positions shuffled "
+                         "among its keypoints (descriptors, scores, labels and the AUC's points stay true): "
+                         "how much it matches by geometry")
     ap.add_argument("--json")
     args = ap.parse_args()
     specs = []
@@ -71,6 +77,9 @@ def main() -> None:
             cfg = dict(cfg, match_threshold=thr)
         m = paraformer.Matcher(cfg, path)
         matchers.append((f"{label} (thr {cfg['match_threshold']:g})", lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
+    if args.shuffle_positions:
+        matchers += [(f"{label}, positions shuffled", lambda f0, f1, m=m: m(shuffled(f0, 0), shuffled(f1, 1)))
+                     for label, m in matchers[1:]]
 
     pairs = []  # (features 0, features 1, labels of view 0, kind, H, image size 0)
     for path in stream.shard_files(args.holdout):
@@ -130,6 +139,14 @@ def main() -> None:
         with open(args.json, "w") as f:
             json.dump({"command": " ".join(sys.argv), "keypoints": args.keypoints, "pairs": len(pairs),
                        "ransac_seeds": args.ransac_seeds, "rows": rows}, f, indent=1)
+
+
+def shuffled(feats: dict, view: int) -> dict:
+    """The features with keypoint positions permuted among the keypoints (a fixed
+    permutation per view and keypoint count), everything else in place."""
+    n = len(feats["keypoints"])
+    perm = np.random.default_rng([view, n]).permutation(n)
+    return dict(feats, keypoints=np.ascontiguousarray(feats["keypoints"][perm]))
 
 
 def viewpoint_bins(h: np.ndarray, size) -> list[str]:

@@ -77,6 +77,22 @@ def model_config(args: dict) -> dict:
     return cfg
 
 
+def phase_gain_init(model: Matcher, lo: float, hi: float) -> None:
+    """Multiplies row j of the Wave-PE phase MLP's last Linear (weight and bias) by gains
+    spaced geometrically from ``lo`` to ``hi``. At PyTorch's default init the phase varies
+    by about 1 rad across the whole image (0.1 rad per 100 px), so every keypoint's
+    positional wave is nearly the same and self-attention cannot tell near from far; the
+    gains give each channel its own spatial frequency from the first step (Fourier-feature
+    style). Only the initial weights change: the architecture and the SPEC are the same."""
+    if not hasattr(model, "wave_pe"):
+        raise ValueError("--phase-gain needs a Wave-PE model (preset paraformer or paraformer_u)")
+    last = model.wave_pe.phase[-1]
+    gain = torch.logspace(math.log10(lo), math.log10(hi), last.out_features)
+    with torch.no_grad():
+        last.weight.mul_(gain[:, None])
+        last.bias.mul_(gain)
+
+
 def init_weights(path: str, config: dict) -> dict:
     """The state dict a run starts from: a checkpoint's EMA weights, or a weights file's
     (e.g. the shipped ``paraformer-xfeat.safetensors``), whose architecture must be the run's."""
@@ -307,6 +323,9 @@ def main() -> None:
                          "or cross-attention weights); more parameters at little CPU cost")
     ap.add_argument("--layer-loss", action="store_true",
                     help="ParaFormer: average the loss over every layer's assignment (training-only heads)")
+    ap.add_argument("--phase-gain", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="a fresh start's Wave-PE phase: per-channel gains from LO to HI on its last "
+                         "Linear (spatial frequencies per channel; e.g. 2 100); ignored by a resume")
     ap.add_argument("--pairs", type=int, default=600_000, help="training pairs in all (lr schedule length)")
     ap.add_argument("--stop-after", type=int, default=None, help="stop this invocation after this many pairs in all")
     ap.add_argument("--keypoints", default="512x8:0.55,1024x4:0.3,2048x2:0.15",
@@ -376,6 +395,15 @@ def main() -> None:
     ema.load_state_dict(model.state_dict())
     if args.layer_loss and args.preset != "paraformer":
         sys.exit("error: --layer-loss needs --preset paraformer")
+    if args.phase_gain and state is None and not args.init:
+        lo, hi = args.phase_gain
+        if not 0 < lo <= hi:
+            sys.exit(f"error: --phase-gain {lo} {hi}: expected 0 < LO <= HI")
+        try:
+            phase_gain_init(model, lo, hi)
+        except ValueError as e:
+            sys.exit(f"error: {e}")
+        ema.load_state_dict(model.state_dict())
     heads = LayerHeads(model) if args.layer_loss else None
     params = list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
     opt = torch.optim.AdamW(params, lr=args.lr, weight_decay=args.weight_decay)
@@ -393,6 +421,8 @@ def main() -> None:
         rng.bit_generator.state = state["rng"]
         print(f"resumed at {pairs_seen} pairs, step {steps}, stream shard {cursor}", flush=True)
     elif args.init:
+        if args.phase_gain:
+            sys.exit("error: --phase-gain applies to a fresh start, not to --init weights")
         grown = load_init(model, init_weights(args.init, model.config))
         ema.load_state_dict(model.state_dict())
         if heads is not None:
