@@ -506,7 +506,7 @@ def test_phase_gain_spreads_the_wave_pe_frequencies_and_names_misuse(tmp_path):
     assert float(ratio[0]) == pytest.approx(2.0) and float(ratio[-1]) == pytest.approx(50.0)
     assert torch.allclose(ratio[1:] / ratio[:-1], (ratio[1] / ratio[0]).expand(31), rtol=1e-4)
     assert torch.allclose(gained.wave_pe.phase[-1].bias.detach(), plain.wave_pe.phase[-1].bias.detach() * ratio)
-    same = [k for k, v in plain.state_dict().items() if not k.startswith("wave_pe.phase.3")]
+    same = [k for k in plain.state_dict() if not k.startswith("wave_pe.phase.3")]
     assert all(torch.equal(plain.state_dict()[k], gained.state_dict()[k]) for k in same)
     sg = Matcher(train.model_config(dict(preset="superglue", dim=32, depth=2, heads=2, sinkhorn=10)))
     with pytest.raises(ValueError, match="Wave-PE"):

@@ -79,11 +79,10 @@ def model_config(args: dict) -> dict:
 
 def phase_gain_init(model: Matcher, lo: float, hi: float) -> None:
     """Multiplies row j of the Wave-PE phase MLP's last Linear (weight and bias) by gains
-    spaced geometrically from ``lo`` to ``hi``. At PyTorch's default init the phase varies
-    by about 1 rad across the whole image (0.1 rad per 100 px), so every keypoint's
-    positional wave is nearly the same and self-attention cannot tell near from far; the
-    gains give each channel its own spatial frequency from the first step (Fourier-feature
-    style). Only the initial weights change: the architecture and the SPEC are the same."""
+    spaced geometrically from ``lo`` to ``hi``: each channel starts at its own spatial
+    frequency (Fourier-feature style) instead of PyTorch's ~1 rad per 100 px, which
+    training flattens to ~0.1. Only the initial weights change: the architecture and the
+    SPEC are the same. (Tried at 2..100: it trained worse; training/README "Geometry".)"""
     if not hasattr(model, "wave_pe"):
         raise ValueError("--phase-gain needs a Wave-PE model (preset paraformer or paraformer_u)")
     last = model.wave_pe.phase[-1]
@@ -388,6 +387,16 @@ def main() -> None:
     except ValueError as e:
         sys.exit(f"error: {e}")
     model = Matcher(cfg).train()
+    if args.phase_gain and state is None:
+        lo, hi = args.phase_gain
+        if args.init:
+            sys.exit("error: --phase-gain applies to a fresh start, not to --init weights")
+        if not 0 < lo <= hi:
+            sys.exit(f"error: --phase-gain {lo} {hi}: expected 0 < LO <= HI")
+        try:
+            phase_gain_init(model, lo, hi)
+        except ValueError as e:
+            sys.exit(f"error: {e}")
     # The exported weights: an exponential moving average of the trained ones, which smooths
     # the noise of small batches (batch 2-8) at a constant learning rate.
     # With --ema 0 it is the trained model itself.
@@ -395,15 +404,6 @@ def main() -> None:
     ema.load_state_dict(model.state_dict())
     if args.layer_loss and args.preset != "paraformer":
         sys.exit("error: --layer-loss needs --preset paraformer")
-    if args.phase_gain and state is None and not args.init:
-        lo, hi = args.phase_gain
-        if not 0 < lo <= hi:
-            sys.exit(f"error: --phase-gain {lo} {hi}: expected 0 < LO <= HI")
-        try:
-            phase_gain_init(model, lo, hi)
-        except ValueError as e:
-            sys.exit(f"error: {e}")
-        ema.load_state_dict(model.state_dict())
     heads = LayerHeads(model) if args.layer_loss else None
     params = list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
     opt = torch.optim.AdamW(params, lr=args.lr, weight_decay=args.weight_decay)
@@ -421,8 +421,6 @@ def main() -> None:
         rng.bit_generator.state = state["rng"]
         print(f"resumed at {pairs_seen} pairs, step {steps}, stream shard {cursor}", flush=True)
     elif args.init:
-        if args.phase_gain:
-            sys.exit("error: --phase-gain applies to a fresh start, not to --init weights")
         grown = load_init(model, init_weights(args.init, model.config))
         ema.load_state_dict(model.state_dict())
         if heads is not None:
