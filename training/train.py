@@ -326,6 +326,9 @@ def main() -> None:
                     help="a fresh start's Wave-PE phase: per-channel gains from LO to HI on its last "
                          "Linear (spatial frequencies per channel; e.g. 2 100); ignored by a resume")
     ap.add_argument("--pairs", type=int, default=600_000, help="training pairs in all (lr schedule length)")
+    ap.add_argument("--decay-start", type=int, default=None,
+                    help="pairs at which the cosine decay begins (default 60%% of --pairs); a branch off a "
+                         "constant-rate run anneals from where it is, e.g. --decay-start 54000 --pairs 74000")
     ap.add_argument("--stop-after", type=int, default=None, help="stop this invocation after this many pairs in all")
     ap.add_argument("--keypoints", default="512x8:0.55,1024x4:0.3,2048x2:0.15",
                     help="per-step keypoints x batch : probability")
@@ -367,6 +370,9 @@ def main() -> None:
                     help="read this pre-generated pool (kept, no generator): short comparison runs")
     args = ap.parse_args()
     args.unshare = [k for k in SHARING if k in args.unshare]  # one spelling per set, for the resume check
+    if args.decay_start is not None and not 0 <= args.decay_start < args.pairs:
+        sys.exit(f"error: --decay-start {args.decay_start}: expected 0 <= it < --pairs ({args.pairs})")
+    decay_from = 0.6 if args.decay_start is None else args.decay_start / args.pairs
 
     torch.set_num_threads(args.threads)
     name = os.path.basename(os.path.normpath(args.run))
@@ -473,7 +479,7 @@ def main() -> None:
             bt = stream.collate(items, k, list(rng.random(bsz) < 0.5), real_unmatched_from=args.real_unmatched_from,
                                     synthetic_positive_px=args.synthetic_positive_px)
             for g_ in opt.param_groups:
-                g_["lr"] = lr_at(pairs_seen, args.pairs, args.warmup, args.lr)
+                g_["lr"] = lr_at(pairs_seen, args.pairs, args.warmup, args.lr, decay_from)
             losses = matching_losses(model, heads, bt, sinkhorn, args.sinkhorn, args.bf16)
             loss = sum(losses) / len(losses)
             opt.zero_grad(set_to_none=True)
