@@ -517,3 +517,20 @@ def test_phase_gain_spreads_the_wave_pe_frequencies_and_names_misuse(tmp_path):
         out = subprocess.run([sys.executable, script, "--run", str(tmp_path / "run"), "--dim", "32", *extra],
                              capture_output=True, text=True)
         assert out.returncode != 0 and needle in out.stderr, (extra, out.stderr)
+
+
+def test_decay_start_anneals_a_branch_from_where_it_stands(tmp_path):
+    """`--decay-start S --pairs T`: constant until S, then cosine to 10% at T (the default
+    start is 60% of T); a start outside [0, T) is refused with both numbers."""
+    import subprocess
+
+    from train import lr_at
+
+    assert lr_at(50_000, 300_000, 4000, 5e-4) == 5e-4  # the long run: constant until 180k
+    assert lr_at(58_000, 78_000, 4000, 5e-4, 58_000 / 78_000) == pytest.approx(5e-4)
+    assert lr_at(68_000, 78_000, 4000, 5e-4, 58_000 / 78_000) == pytest.approx(5e-4 * 0.55)
+    assert lr_at(78_000, 78_000, 4000, 5e-4, 58_000 / 78_000) == pytest.approx(5e-5)
+    script = str(Path(__file__).resolve().parents[1] / "training" / "train.py")
+    out = subprocess.run([sys.executable, script, "--run", str(tmp_path / "run"), "--dim", "32",
+                          "--pairs", "1000", "--decay-start", "1000"], capture_output=True, text=True)
+    assert out.returncode != 0 and "--decay-start 1000" in out.stderr and "(1000)" in out.stderr, out.stderr
