@@ -218,7 +218,10 @@ def ema_decay(decay: float, step: int, warmup: bool) -> float:
     return min(decay, (1 + step) / (10 + step)) if warmup else decay
 
 
-def lr_at(pairs: int, total: int, warmup: int, peak: float, decay_from: float = 0.6) -> float:
+DECAY_FROM = 0.6  # the cosine's default start, as a fraction of --pairs
+
+
+def lr_at(pairs: int, total: int, warmup: int, peak: float, decay_from: float = DECAY_FROM) -> float:
     """Linear warm-up over ``warmup`` pairs, constant, then cosine to 10% over the last
     ``1 − decay_from`` of ``total`` pairs."""
     if pairs < warmup:
@@ -372,7 +375,7 @@ def main() -> None:
     args.unshare = [k for k in SHARING if k in args.unshare]  # one spelling per set, for the resume check
     if args.decay_start is not None and not 0 <= args.decay_start < args.pairs:
         sys.exit(f"error: --decay-start {args.decay_start}: expected 0 <= it < --pairs ({args.pairs})")
-    decay_from = 0.6 if args.decay_start is None else args.decay_start / args.pairs
+    decay_from = DECAY_FROM if args.decay_start is None else args.decay_start / args.pairs
 
     torch.set_num_threads(args.threads)
     name = os.path.basename(os.path.normpath(args.run))
