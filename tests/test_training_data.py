@@ -534,3 +534,21 @@ def test_decay_start_anneals_a_branch_from_where_it_stands(tmp_path):
     out = subprocess.run([sys.executable, script, "--run", str(tmp_path / "run"), "--dim", "32",
                           "--pairs", "1000", "--decay-start", "1000"], capture_output=True, text=True)
     assert out.returncode != 0 and "--decay-start 1000" in out.stderr and "(1000)" in out.stderr, out.stderr
+
+
+def test_attention_bench_rows_compute_the_same_gradient():
+    """bench_attention.py times three attentions; they must be one function: every row's
+    q/k/v gradient equals float64 autograd's (fp32 inputs, tight), and a bad --reps is named."""
+    import subprocess
+
+    import bench_attention as ba
+
+    torch.manual_seed(1)
+    q, k, v, g = (torch.randn(2, 3, 40, 32) for _ in range(4))
+    want = ba.gradients(ba.explicit, q.double(), k.double(), v.double(), g.double())
+    for name, fn in ba.ROWS.items():
+        got = ba.gradients(fn, q, k, v, g)
+        assert torch.allclose(got, want, rtol=1e-4, atol=1e-5), name
+    out = subprocess.run([sys.executable, str(ROOT / "training" / "bench_attention.py"), "--reps", "0"],
+                         capture_output=True, text=True)
+    assert out.returncode != 0 and "--reps 0" in out.stderr, out.stderr
