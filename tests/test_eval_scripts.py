@@ -138,3 +138,15 @@ def test_holdout_peers_shuffles_positions_only():
     assert (a["keypoints"] != b["keypoints"]).any()
     assert np.array_equal(shuffled(feats, 0)["keypoints"], a["keypoints"])
     assert feats["keypoints"].flags["C_CONTIGUOUS"] and a["keypoints"].flags["C_CONTIGUOUS"]
+
+
+def test_evaluate_names_the_unbuilt_cli(tmp_path, monkeypatch):
+    """A fresh clone has no target/release/paraformer: the synthetic set's generation says
+    which binary is missing and how to build it, not a bare FileNotFoundError."""
+    import pytest
+
+    ev = load(ROOT / "training" / "evaluate.py", "evaluate_cli_check")
+    monkeypatch.setattr(ev, "ROOT", str(tmp_path))
+    with pytest.raises(SystemExit, match=r"cargo build --release -p paraformer-cli") as err:
+        ev.synth_pairs(str(tmp_path / "shared"), str(tmp_path / "cache"), 5)
+    assert str(tmp_path / "target" / "release" / "paraformer") in str(err.value)

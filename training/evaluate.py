@@ -42,6 +42,10 @@ def synth_pairs(shared: str, cache: str, count: int) -> list[tuple]:
     listing = os.path.join(out, "homographies.txt")
     if not os.path.exists(listing) or sum(1 for _ in open(listing)) < count:
         exe = os.path.join(ROOT, "target", "release", "paraformer")
+        if not os.path.isfile(exe):
+            # The synthetic set is made once by the CLI; a fresh clone has not built it yet.
+            raise SystemExit(f"error: the synthetic validation set ({out}) needs the CLI {exe}, which is "
+                             "not built: run `cargo build --release -p paraformer-cli` first")
         cmd = [exe, "synth", "--photos", os.path.join(shared, "val", "bsds500_test"), "--out", out,
                "--count", str(count), "--seed", "0", "--difficulty", "0.5"]
         subprocess.run(cmd, check=True)
