@@ -145,6 +145,40 @@ def test_sequence_uses_a_fitted_colour_camera(tmp_path, monkeypatch):
     assert rgbd.Sequence(str(root), colour_camera=False).K[0, 0] == 585
 
 
+def test_sequence_frame_cache_is_exact_read_only_and_follows_the_camera(tmp_path):
+    """Cached frames equal fresh reads (grey: the rounded float mean of R, G, B), cannot be
+    written by a caller, and a colour camera set after a read re-registers the depth."""
+    import cv2
+
+    root = tmp_path / "7scenes_sample"
+    root.mkdir()
+    np.savetxt(root / "K.txt", [[585.0, 0, 160], [0, 585.0, 120], [0, 0, 1]])
+    rgb = np.random.default_rng(0).integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    # PNG bytes under the .jpg name (imread goes by content): the colours stay exact
+    (root / "frame-000000.color.jpg").write_bytes(cv2.imencode(".png", rgb)[1].tobytes())
+    depth = np.full((240, 320), 2000, np.uint16)
+    depth[:, :40] = 65535  # invalid
+    cv2.imwrite(str(root / "frame-000000.depth.png"), depth)
+    np.savetxt(root / "frame-000000.pose.txt", np.eye(4))
+    seq = rgbd.Sequence(str(root), colour_camera=False)
+    g = seq.gray(0)
+    expect = np.round(cv2.imread(str(root / "frame-000000.color.jpg")).astype(np.float32).mean(2)).astype(np.uint8)
+    np.testing.assert_array_equal(g, expect)
+    assert seq.gray(0) is g and not g.flags.writeable
+    d = seq.depth(0)
+    assert not d.flags.writeable and d[0, 0] == 0 and d[120, 160] == pytest.approx(2.0)
+    with pytest.raises(ValueError):
+        d[0, 0] = 1.0
+    t_cd = np.eye(4)
+    t_cd[0, 3] = -0.05
+    k_c = np.array([[525.0, 0, 160], [0, 525.0, 120], [0, 0, 1]])
+    seq.use_colour_camera(k_c, t_cd)
+    fresh = rgbd.register_depth(np.where(depth == 65535, 0, depth).astype(np.float32) / 1000.0,
+                                np.loadtxt(root / "K.txt"), k_c, t_cd, (240, 320))
+    np.testing.assert_array_equal(seq.depth(0), fresh)
+    assert not np.array_equal(seq.depth(0), d)
+
+
 def test_shard_round_trip_and_top_k_cut(tmp_path):
     rng = np.random.default_rng(0)
     def feats(n):

@@ -28,6 +28,7 @@ DEPTH_TOLERANCE = 0.05  # relative depth agreement for "the same surface"
 # Such a sequence is used only with a fitted colour camera (COLOUR_CAMERAS, written by
 # ``training/fit_rgbd_colour_camera.py``): its depth is then re-rendered into the colour frame.
 MISREGISTERED = ("7scenes_sample",)
+FRAME_CACHE = 2048  # decoded frames a Sequence keeps (grey 0.3 MB, depth 1.2 MB at 640×480)
 COLOUR_CAMERAS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "rgbd_colour_cameras.json")
 
 
@@ -46,14 +47,25 @@ def usable(root: str) -> bool:
     return name not in MISREGISTERED or name in colour_cameras()
 
 
+def pixel_rays(k: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``K⁻¹ (x, y, 1)`` of every pixel, ``[3, H, W]`` float64."""
+    h, w = shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    return np.linalg.solve(k, np.stack([xs.ravel(), ys.ravel(), np.ones(h * w)]).astype(np.float64)).reshape(3, h, w)
+
+
 def register_depth(depth: np.ndarray, k_depth: np.ndarray, k_colour: np.ndarray,
-                   t_colour_from_depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+                   t_colour_from_depth: np.ndarray, shape: tuple[int, int],
+                   rays: np.ndarray | None = None) -> np.ndarray:
     """A depth camera's map re-rendered in the colour camera: each valid depth pixel lands on
     its nearest colour pixel, the nearest surface wins; metres along the colour camera's
-    axis, 0 where nothing lands (missing: its keypoints are ignored, not unmatched)."""
+    axis, 0 where nothing lands (missing: its keypoints are ignored, not unmatched).
+    ``rays``: ``pixel_rays(k_depth, depth.shape)``, when the caller keeps it."""
     ys, xs = np.nonzero(depth > 0)
     z = depth[ys, xs].astype(np.float64)
-    rays = np.linalg.solve(k_depth, np.stack([xs, ys, np.ones(len(xs))]).astype(np.float64))
+    if rays is None:
+        rays = pixel_rays(k_depth, depth.shape)
+    rays = rays[:, ys, xs]
     x_c = t_colour_from_depth[:3, :3] @ (rays * z) + t_colour_from_depth[:3, 3:4]
     front = x_c[2] > 1e-3
     x_c = x_c[:, front]
@@ -90,6 +102,10 @@ class Sequence:
             raise ValueError(f"{root}: {len(self.images)} images but {len(poses)} poses")
         self.poses = poses.astype(np.float64)
         self.k_depth, self.t_colour_from_depth = self.K, None
+        # Decoded frames, kept because the generator revisits the same few hundred frames:
+        # re-reading and re-registering a depth map cost ~40 ms, a grey frame ~9 ms.
+        self._frames: dict[tuple[str, int], np.ndarray] = {}
+        self._rays: np.ndarray | None = None
         cal = colour_cameras().get(self.name) if colour_camera else None
         if cal is not None:
             self.use_colour_camera(np.asarray(cal["K"], np.float64).reshape(3, 3),
@@ -99,6 +115,7 @@ class Sequence:
         """Describe the colour frames from now on: their K, the colour camera's poses and the
         depth re-rendered into it (the shipped K and poses are the depth camera's)."""
         self.K, self.t_colour_from_depth = k_colour, t_colour_from_depth
+        self._frames.clear()
         # camera-to-world of the colour camera: T_w_depth · T_depth_colour
         self.poses = self.poses @ np.linalg.inv(t_colour_from_depth)
 
@@ -114,14 +131,32 @@ class Sequence:
         return len(self.images)
 
     def gray(self, i: int) -> np.ndarray:
-        """Frame i as XFeat sees a colour image: the mean of R, G and B, uint8."""
+        """Frame i as XFeat sees a colour image: the mean of R, G and B, uint8 (read-only)."""
+        return self._cached("gray", i, self._read_gray)
+
+    def depth(self, i: int) -> np.ndarray:
+        """Depth in metres, float32, 0 where missing (read-only)."""
+        return self._cached("depth", i, self._read_depth)
+
+    def _cached(self, kind: str, i: int, read) -> np.ndarray:
+        key = (kind, i)
+        out = self._frames.get(key)
+        if out is None:
+            out = read(i)
+            out.setflags(write=False)
+            if len(self._frames) < FRAME_CACHE:
+                self._frames[key] = out
+        return out
+
+    def _read_gray(self, i: int) -> np.ndarray:
         img = cv2.imread(self.images[i], cv2.IMREAD_COLOR)
         if img is None:
             raise ValueError(f"{self.images[i]}: unreadable image")
-        return np.round(img.astype(np.float32).mean(2)).astype(np.uint8)
+        # round((b + g + r) / 3) in integers: a third is never a tie, so this equals the
+        # rounded float mean exactly.
+        return ((img.astype(np.uint16).sum(2) + 1) // 3).astype(np.uint8)
 
-    def depth(self, i: int) -> np.ndarray:
-        """Depth in metres, float32, 0 where missing."""
+    def _read_depth(self, i: int) -> np.ndarray:
         d = cv2.imread(self.depths[i], cv2.IMREAD_UNCHANGED)
         if d is None:
             raise ValueError(f"{self.depths[i]}: unreadable depth")
@@ -130,7 +165,9 @@ class Sequence:
             d[d == self.invalid_depth] = 0
         d = d / 1000.0
         if self.t_colour_from_depth is not None:
-            d = register_depth(d, self.k_depth, self.K, self.t_colour_from_depth, d.shape)
+            if self._rays is None or self._rays.shape[1:] != d.shape:
+                self._rays = pixel_rays(self.k_depth, d.shape)
+            d = register_depth(d, self.k_depth, self.K, self.t_colour_from_depth, d.shape, self._rays)
         return d
 
 
