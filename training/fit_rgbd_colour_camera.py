@@ -133,9 +133,10 @@ def main() -> None:
     theta = np.array([args.focal, k_d[0, 2], k_d[1, 2], 0, 0, 0, 0, 0], np.float64)
     best = (np.inf, theta)
     depths = {i: raw.depth(i) for p in train for i in p}
+    rays = {s: rgbd.pixel_rays(k_d, s) for s in {d.shape for d in depths.values()}}  # K_d is fixed
     for r in range(args.rounds):
         k_c, t_cd = camera(theta)
-        reg = {i: rgbd.register_depth(d, k_d, k_c, t_cd, d.shape) for i, d in depths.items()}
+        reg = {i: rgbd.register_depth(d, k_d, k_c, t_cd, d.shape, rays[d.shape]) for i, d in depths.items()}
         terms = []  # (points of a, their colour depth, matched points of b, pose a, pose b)
         for a, b in train:
             pa, pb = obs[(a, b)]
