@@ -586,3 +586,28 @@ def test_attention_bench_rows_compute_the_same_gradient():
     out = subprocess.run([sys.executable, str(ROOT / "training" / "bench_attention.py"), "--reps", "0"],
                          capture_output=True, text=True)
     assert out.returncode != 0 and "--reps 0" in out.stderr, out.stderr
+
+
+def test_heavy_noise_is_opt_in_and_strong():
+    img = np.full((120, 160), 128, np.uint8)
+    # Off: no random number is drawn for it, so the default stream stays bit-identical.
+    a = data.photometric(img, np.random.default_rng(7))
+    b = data.photometric(img, np.random.default_rng(7), heavy_noise=0.0)
+    assert np.array_equal(a, b)
+    # Always on: σ 15-80 against the recipe's 2-12 (a flat grey image shows the noise alone,
+    # up to JPEG and blur, which only lower it).
+    stds = [float(np.std(data.photometric(img, np.random.default_rng(s), heavy_noise=1.0).astype(np.float32)))
+            for s in range(20)]
+    mild = [float(np.std(data.photometric(img, np.random.default_rng(s)).astype(np.float32) -
+                         data.photometric(img, np.random.default_rng(s)).astype(np.float32).mean()))
+            for s in range(20)]
+    assert min(stds) > 8 and np.median(stds) > 25
+    assert max(mild) < 20
+
+
+def test_generator_names_a_bad_heavy_noise(tmp_path):
+    import subprocess
+    r = subprocess.run([sys.executable, str(Path(__file__).parents[1] / "training" / "generate_pairs.py"),
+                        "--pool", str(tmp_path / "pool"), "--heavy-noise", "1.5", "--shards", "1"],
+                       capture_output=True, text=True)
+    assert r.returncode != 0 and "--heavy-noise" in r.stderr and "1.5" in r.stderr

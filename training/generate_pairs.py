@@ -39,9 +39,13 @@ def main() -> None:
                     help="RGB-D sequence folders (default: all that rgbd.usable accepts)")
     ap.add_argument("--rgbd-split", choices=["train", "holdout"], default="train")
     ap.add_argument("--real-fraction", type=float, default=0.2)
+    ap.add_argument("--heavy-noise", type=float, default=0.0,
+                    help="probability per view of Gaussian noise of sigma 15-80 instead of 2-12 (default 0: the stream unchanged)")
     ap.add_argument("--cache", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "cache", "rgbd_pairs"))
     ap.add_argument("--parent", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args()
+    if not 0.0 <= args.heavy_noise <= 1.0:
+        sys.exit(f"error: --heavy-noise is a probability in [0, 1], got {args.heavy_noise}")
     for p in args.photos:
         if os.sep + "val" + os.sep in os.path.abspath(p) + os.sep:
             sys.exit("error: training photos must not come from val/")
@@ -50,9 +54,10 @@ def main() -> None:
     cv2.setNumThreads(1)
     os.makedirs(args.pool, exist_ok=True)
     seqs = rgbd.split_pairs([r for r in args.rgbd if os.path.isdir(r)], args.rgbd_split, args.cache)
-    src = stream.PairSource(data.list_photos(args.photos), seqs, args.seed, args.real_fraction)
+    src = stream.PairSource(data.list_photos(args.photos), seqs, args.seed, args.real_fraction,
+                            heavy_noise=args.heavy_noise)
     print(f"generator: {len(src.photos)} photos, RGB-D pairs {[len(p) for _, p in src.sequences]}, "
-          f"real fraction {src.real_fraction}, from shard {args.start}", flush=True)
+          f"real fraction {src.real_fraction}, heavy noise {src.heavy_noise}, from shard {args.start}", flush=True)
     index = args.start
     t0, made = time.time(), 0
     while args.shards is None or index < args.start + args.shards:

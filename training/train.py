@@ -287,6 +287,7 @@ def start_generator(args, work: str, cursor: int) -> subprocess.Popen:
     cmd = [sys.executable, os.path.join(HERE, "generate_pairs.py"), "--pool", os.path.join(work, "pool"),
            "--seed", str(args.seed), "--start", str(cursor), "--shard-size", str(args.shard_size),
            "--max-pending", str(args.max_pending), "--real-fraction", str(args.real_fraction),
+           "--heavy-noise", str(args.heavy_noise),
            "--parent", str(os.getpid())]
     env = dict(os.environ, RAYON_NUM_THREADS=str(args.gen_threads), OMP_NUM_THREADS="1")
     return subprocess.Popen(["nice", "-n", str(args.gen_nice)] + cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
@@ -350,6 +351,9 @@ def main() -> None:
     ap.add_argument("--max-pending", type=int, default=24)
     ap.add_argument("--reuse", type=float, default=1.0, help="draws per pair before its shard is retired")
     ap.add_argument("--real-fraction", type=float, default=0.2)
+    ap.add_argument("--heavy-noise", type=float, default=0.0,
+                    help="probability per view of Gaussian noise of sigma 15-80 grey levels instead of the "
+                         "recipe's 2-12 (homography/iguazu_noise reaches 78); 0 leaves the stream unchanged")
     ap.add_argument("--synthetic-positive-px", type=float, default=None,
                     help="positive radius for synthetic pairs (default: 3 px like the evaluation; "
                          "keypoints between it and 3 px are ignored)")
@@ -375,6 +379,8 @@ def main() -> None:
     args.unshare = [k for k in SHARING if k in args.unshare]  # one spelling per set, for the resume check
     if args.decay_start is not None and not 0 <= args.decay_start < args.pairs:
         sys.exit(f"error: --decay-start {args.decay_start}: expected 0 <= it < --pairs ({args.pairs})")
+    if not 0.0 <= args.heavy_noise <= 1.0:
+        sys.exit(f"error: --heavy-noise is a probability in [0, 1], got {args.heavy_noise}")
     decay_from = DECAY_FROM if args.decay_start is None else args.decay_start / args.pairs
 
     torch.set_num_threads(args.threads)

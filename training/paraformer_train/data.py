@@ -84,8 +84,13 @@ def motion_kernel(k: int, angle: float) -> np.ndarray:
     return kernel / max(kernel.sum(), 1e-6)
 
 
-def photometric(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
-    """Brightness/contrast, gamma, blur, Gaussian noise, JPEG, each applied with probability."""
+def photometric(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0,
+                heavy_noise: float = 0.0) -> np.ndarray:
+    """Brightness/contrast, gamma, blur, Gaussian noise, JPEG, each applied with probability.
+
+    ``heavy_noise``: the probability of Gaussian noise of σ 15-80 grey levels instead of the
+    mild σ 2-12 (homography/iguazu_noise reaches σ 78). At 0 no random number is drawn for it,
+    so the default stream stays bit-identical."""
     x = img.astype(np.float32)
     if rng.random() < 0.8:
         x = (x - 127.5) * rng.uniform(1 - 0.35 * strength, 1 + 0.35 * strength) + 127.5 + rng.uniform(-35, 35) * strength
@@ -98,7 +103,9 @@ def photometric(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0
     elif rng.random() < 0.1:
         k = int(rng.choice([5, 7, 9]))
         x = cv2.filter2D(x, -1, motion_kernel(k, rng.uniform(0, 180)))
-    if rng.random() < 0.4:
+    if heavy_noise > 0 and rng.random() < heavy_noise:
+        x = x + rng.normal(0, rng.uniform(15, 80), x.shape)
+    elif rng.random() < 0.4:
         x = x + rng.normal(0, rng.uniform(2, 12) * strength, x.shape)
     x = np.clip(x, 0, 255).astype(np.uint8)
     if rng.random() < 0.4:
@@ -108,14 +115,14 @@ def photometric(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0
     return x
 
 
-def make_pair(photo: np.ndarray, rng: np.random.Generator, difficulty=(0.3, 0.85)):
+def make_pair(photo: np.ndarray, rng: np.random.Generator, difficulty=(0.3, 0.85), heavy_noise: float = 0.0):
     """Two independently warped, photometrically changed views of ``photo`` and the
     homography mapping view-0 pixels to view-1 pixels."""
     ph, pw = photo.shape
     ow, oh = output_size(photo)
     hs = [sample_patch((pw, ph), (ow, oh), rng.uniform(*difficulty), rng) for _ in range(2)]
     views = [photometric(cv2.warpPerspective(photo, hm, (ow, oh), flags=cv2.INTER_LINEAR,
-                                             borderMode=cv2.BORDER_REFLECT), rng) for hm in hs]
+                                             borderMode=cv2.BORDER_REFLECT), rng, heavy_noise=heavy_noise) for hm in hs]
     return views, hs[1] @ np.linalg.inv(hs[0])
 
 

