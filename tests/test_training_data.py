@@ -611,3 +611,32 @@ def test_generator_names_a_bad_heavy_noise(tmp_path):
                         "--pool", str(tmp_path / "pool"), "--heavy-noise", "1.5", "--shards", "1"],
                        capture_output=True, text=True)
     assert r.returncode != 0 and "--heavy-noise" in r.stderr and "1.5" in r.stderr
+
+
+def test_data_parallel_step_is_the_one_process_step():
+    """bench_data_parallel.py's two-process step (half a batch each, the whole batch's label
+    counts and BatchNorm statistics): the loss and gradient of the one-process step on the
+    whole batch, in training mode, up to the order of sums; a batch that cannot be split is named."""
+    from train import matching_losses, model_config
+    from paraformer_train.data_parallel import DataParallel, split_batch
+    from paraformer_train.model import Matcher, log_optimal_transport_last_grad
+
+    cfg = model_config({"preset": "paraformer", "dim": 32, "heads": 2, "depth": 1, "sinkhorn": 10})
+    torch.manual_seed(3)
+    one, two = Matcher(cfg).train(), Matcher(cfg).train()
+    two.load_state_dict(one.state_dict())
+    bt = _random_pair(b=4, seed=9)
+    bt["gt0"] = torch.randint(-2, 33, (4, 40))
+    bt["gt1"] = torch.randint(-2, 0, (4, 33))
+    loss = matching_losses(one, None, bt, log_optimal_transport_last_grad, 10)[-1]
+    loss.backward()
+    with DataParallel(two, cfg, "last", 10, bf16=False) as dp:
+        loss2 = dp.step(bt)
+        assert abs(loss2 - loss.item()) < 1e-5 * loss.item()
+        for (name, p1), p2 in zip(one.named_parameters(), two.parameters()):
+            assert torch.allclose(p1.grad, p2.grad, rtol=1e-4, atol=1e-6), name
+        # BatchNorm's running statistics: one update, the whole batch's.
+        for (name, b1), b2 in zip(one.named_buffers(), two.buffers()):
+            assert torch.allclose(b1.float(), b2.float(), rtol=1e-5, atol=1e-6), name
+    with pytest.raises(ValueError, match="batch of 1 pairs into 2 parts"):
+        split_batch({k: v[:1] for k, v in bt.items()}, 2)

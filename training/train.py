@@ -174,28 +174,39 @@ class LayerHeads(nn.Module):
 
 
 def matching_losses(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
-                    bf16: bool = False) -> list[torch.Tensor]:
+                    bf16: bool = False, counts: tuple[int, int] | None = None) -> list[torch.Tensor]:
     """The assignment NLL of the last layer, or with ``heads`` of every layer (last one last).
-    ``bf16``: the network's forward (not Sinkhorn or the loss) under CPU bfloat16 autocast."""
+    ``bf16``: the network's forward (not Sinkhorn or the loss) under CPU bfloat16 autocast.
+    ``counts``: see ``nll_loss`` (a data-parallel share of a batch)."""
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         if heads is None:
             scores = [(model.scores(bt), model.bin_score)]
         else:
             scores = [(pair_scores(proj, x, y), b) for (x, y), (proj, b)
                       in zip(model.layer_states(*model.encode_pair(bt)), heads.heads(model))]
-    return [nll_loss(sinkhorn(s.float(), b, iters), bt["gt0"], bt["gt1"]) for s, b in scores]
+    return [nll_loss(sinkhorn(s.float(), b, iters), bt["gt0"], bt["gt1"], counts) for s, b in scores]
 
 
-def nll_loss(logp: torch.Tensor, gt0: torch.Tensor, gt1: torch.Tensor) -> torch.Tensor:
+def label_counts(bt: dict) -> tuple[int, int]:
+    """(positives, unmatched keypoints of both images) of a batch: ``nll_loss``'s denominators."""
+    return int((bt["gt0"] >= 0).sum()), int((bt["gt0"] == -1).sum() + (bt["gt1"] == -1).sum())
+
+
+def nll_loss(logp: torch.Tensor, gt0: torch.Tensor, gt1: torch.Tensor,
+             counts: tuple[int, int] | None = None) -> torch.Tensor:
     """Assignment NLL with dustbins: 0.5 · mean over positives + 0.5 · mean over unmatched
     keypoints of both images; ignored keypoints (−2) are left out. Masked sums, no
-    boolean indexing: no host synchronisation on a GPU."""
+    boolean indexing: no host synchronisation on a GPU. ``counts`` (``label_counts`` of the
+    whole batch) divides by those instead of this part's own, so that the losses of the parts
+    of a split batch sum to the whole batch's loss."""
     pos, un0, un1 = gt0 >= 0, gt0 == -1, gt1 == -1
     pos_ll = logp[:, :-1, :].gather(2, gt0.clamp(min=0)[..., None])[..., 0]
-    pos_term = -torch.where(pos, pos_ll, 0.0).sum() / pos.sum().clamp(min=1)
     neg_sum = torch.where(un0, logp[:, :-1, -1], 0.0).sum() + torch.where(un1, logp[:, -1, :-1], 0.0).sum()
-    neg_term = -neg_sum / (un0.sum() + un1.sum()).clamp(min=1)
-    return 0.5 * pos_term + 0.5 * neg_term
+    if counts is None:
+        n_pos, n_un = pos.sum().clamp(min=1), (un0.sum() + un1.sum()).clamp(min=1)
+    else:
+        n_pos, n_un = max(counts[0], 1), max(counts[1], 1)
+    return 0.5 * -torch.where(pos, pos_ll, 0.0).sum() / n_pos + 0.5 * -neg_sum / n_un
 
 
 def precision_recall(pred0: torch.Tensor, gt0: torch.Tensor) -> tuple[int, int, int]:
