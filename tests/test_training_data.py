@@ -5,6 +5,7 @@ Checked against independent rules: the Rust core's homography ground truth (the 
 rule) and a hand-built RGB-D scene with known geometry.
 """
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -640,3 +641,34 @@ def test_data_parallel_step_is_the_one_process_step():
             assert torch.allclose(b1.float(), b2.float(), rtol=1e-5, atol=1e-6), name
     with pytest.raises(ValueError, match="batch of 1 pairs into 2 parts"):
         split_batch({k: v[:1] for k, v in bt.items()}, 2)
+
+
+def test_inline_generator_writes_the_streams_next_shards(tmp_path):
+    """`train.py --generate-inline`: the next shards of the same stream (pair i of shard s is
+    pair s·size + i of the seed), only while fewer than `ahead` wait, skipping shards already
+    on disk (a background generator's, before a resume)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "training"))
+    import generate_pairs
+
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data" / "train" / "bsds500_train"
+    if not shared.is_dir():
+        pytest.skip(f"{shared} not found: the training photos are needed")
+    photos = data.list_photos([str(shared)])[:3]
+    src = stream.PairSource(photos, [], seed=4, real_fraction=0.0)
+    pool = str(tmp_path / "pool")
+    gen = generate_pairs.InlineGenerator(src, pool, start=5, shard_size=2, ahead=2)
+    generate_pairs.write_shard(src, pool, 6, 2)  # already there: kept, not rewritten
+    before = Path(stream.shard_path(pool, 6)).stat().st_mtime_ns
+    gen.top_up(waiting=0, seen=4)
+    assert [stream.shard_index(p) for p in stream.shard_files(pool)] == [5, 6, 7]
+    assert Path(stream.shard_path(pool, 6)).stat().st_mtime_ns == before
+    gen.top_up(waiting=2, seen=4)  # enough ahead: nothing written
+    assert len(stream.shard_files(pool)) == 3 and gen.made == 4
+    # The reader used and deleted 5-7 (and 8, from a generator before): never made again.
+    for i in (5, 6, 7):
+        os.remove(stream.shard_path(pool, i))
+    gen.top_up(waiting=0, seen=8)
+    assert [stream.shard_index(p) for p in stream.shard_files(pool)] == [9, 10] and gen.made == 8
+    shard = stream.Shard(stream.shard_path(pool, 10))
+    again = src.pair(10 * 2 + 1)
+    assert np.array_equal(shard.views[2][0], again["f"][0]["keypoints"])  # pair 1 of shard 10, view 0

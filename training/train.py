@@ -371,6 +371,10 @@ def main() -> None:
     ap.add_argument("--real-unmatched-from", type=float, default=8.0,
                     help="training labels of real pairs: unmatched only from this distance (px), ignored "
                          "between it and 3 px (pose/depth noise); validation keeps the evaluation rule")
+    ap.add_argument("--generate-inline", action="store_true",
+                    help="generate the stream's shards inside the trainer between steps, on both cores, instead of "
+                         "in a process beside it (the same pairs; the generator beside it costs the step its "
+                         "OpenMP barriers)")
     ap.add_argument("--gen-threads", type=int, default=1)
     ap.add_argument("--gen-nice", type=int, default=0,
                     help="generator niceness over the trainer's: equal by default, since a starved generator means pairs drawn twice")
@@ -463,9 +467,17 @@ def main() -> None:
         return
     with open(os.path.join(args.run, "config.json"), "w") as f:
         json.dump({"args": vars(args), "config": model.config}, f, indent=1)
+    inline = None
     if args.fixed_pool:
         gen = None
         reader = stream.PoolReader(args.fixed_pool, cursor, reuse=args.reuse, rng=rng, delete=False)
+    elif args.generate_inline:
+        import generate_pairs
+
+        gen = None
+        src = generate_pairs.pair_source(args.seed, args.real_fraction, args.heavy_noise)
+        inline = generate_pairs.InlineGenerator(src, os.path.join(work, "pool"), cursor, args.shard_size)
+        reader = stream.PoolReader(os.path.join(work, "pool"), cursor, reuse=args.reuse, rng=rng)
     else:
         gen = start_generator(args, work, cursor)
         reader = stream.PoolReader(os.path.join(work, "pool"), cursor, reuse=args.reuse, rng=rng)
@@ -495,6 +507,8 @@ def main() -> None:
             if gen is not None and gen.poll() is not None:
                 gen = start_generator(args, work, reader.low_water())
             k, bsz, _ = schedule[int(rng.choice(len(schedule), p=[p for _, _, p in schedule]))]
+            if inline is not None:
+                inline.top_up(reader.waiting(), reader.high_water())
             items = reader.draw(bsz)
             bt = stream.collate(items, k, list(rng.random(bsz) < 0.5), real_unmatched_from=args.real_unmatched_from,
                                     synthetic_positive_px=args.synthetic_positive_px)
@@ -520,7 +534,9 @@ def main() -> None:
             if steps % 50 == 0:
                 rate = sum(kinds.values()) / max(time.time() - t_mark, 1e-9)
                 print(f"step {steps} pairs {pairs_seen} loss {np.mean(running[-50:]):.4f} "
-                      f"lr {opt.param_groups[0]['lr']:.2e} {rate:.1f} pairs/s shard {reader.low_water()}", flush=True)
+                      f"lr {opt.param_groups[0]['lr']:.2e} {rate:.1f} pairs/s shard {reader.low_water()}"
+                      + (f" inline generation {100 * inline.seconds / max(time.time() - t_mark, 1e-9):.0f}%"
+                         if inline is not None else ""), flush=True)
             if pairs_seen >= next_val or pairs_seen >= limit:
                 next_val += args.val_every
                 v = validate(ema, holdout, 512, args.val_threshold, auc=False)

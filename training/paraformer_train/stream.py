@@ -200,6 +200,14 @@ class PoolReader:
                 return
             self.shards.append(Shard(ready[0]))
 
+    def waiting(self) -> int:
+        """Shards on disk that are not loaded yet (the generator's lead)."""
+        return len(self._ready())
+
+    def high_water(self) -> int:
+        """The highest shard index loaded or retired so far (``cursor − 1`` before any)."""
+        return max([s.index for s in self.shards] + list(self.retired), default=self.cursor - 1)
+
     def low_water(self) -> int:
         """The lowest shard index not yet retired: where a resumed run continues."""
         if self.shards:
