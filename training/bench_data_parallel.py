@@ -1,5 +1,5 @@
 """Training-step throughput of one process on two threads against two processes of one
-thread each (``train.py --data-parallel 2``), side by side in one run: the same start
+thread each (``paraformer_train/data_parallel.py``), side by side in one run: the same start
 weights, the same batches, blocks of steps alternated, at each keypoint count of the
 training schedule (512 × 8, 1024 × 4, 2048 × 2) and for the schedule's mix of them.
 

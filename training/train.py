@@ -471,15 +471,15 @@ def main() -> None:
     if args.fixed_pool:
         gen = None
         reader = stream.PoolReader(args.fixed_pool, cursor, reuse=args.reuse, rng=rng, delete=False)
-    elif args.generate_inline:
-        import generate_pairs
-
-        gen = None
-        src = generate_pairs.pair_source(args.seed, args.real_fraction, args.heavy_noise)
-        inline = generate_pairs.InlineGenerator(src, os.path.join(work, "pool"), cursor, args.shard_size)
-        reader = stream.PoolReader(os.path.join(work, "pool"), cursor, reuse=args.reuse, rng=rng)
     else:
-        gen = start_generator(args, work, cursor)
+        gen = None
+        if args.generate_inline:
+            import generate_pairs
+
+            src = generate_pairs.pair_source(args.seed, args.real_fraction, args.heavy_noise)
+            inline = generate_pairs.InlineGenerator(src, os.path.join(work, "pool"), cursor, args.shard_size)
+        else:
+            gen = start_generator(args, work, cursor)
         reader = stream.PoolReader(os.path.join(work, "pool"), cursor, reuse=args.reuse, rng=rng)
     schedule = parse_schedule(args.keypoints)
     sinkhorn = log_optimal_transport_last_grad if args.sinkhorn_grad == "last" else log_optimal_transport

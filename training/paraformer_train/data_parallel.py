@@ -1,12 +1,11 @@
-"""Two-process data parallelism for the CPU trainer (``train.py --data-parallel 2``).
+"""Two-process data parallelism for the CPU training step, measured by
+``bench_data_parallel.py`` and not used by ``train.py``: on this machine's two cores it ran at
+0.92× the one-process step of two threads (training/README.md, "Two processes of one thread").
 
-On this machine's two cores, two processes of one thread each get more steps done than one
-process of two threads (PyTorch's intra-op parallelism leaves the cores idle between the
-many small operators of a matcher step; ``bench_data_parallel.py`` measures it). The trainer
-(rank 0) keeps everything it had: the stream, the optimiser, the EMA, validation and
-checkpoints. A helper process (rank 1) holds a copy of the model; each step it gets half of
-the batch through a pipe and rank 0's weights and BatchNorm buffers by a gloo broadcast (so
-the copies never drift), and the two ranks sum their gradients with one gloo all-reduce.
+Rank 0 holds the model and the optimiser. A helper process (rank 1) holds a copy of the model;
+each step it gets half of the batch through a pipe and rank 0's weights and BatchNorm buffers
+by a gloo broadcast (so the copies never drift), and the two ranks sum their gradients with
+one gloo all-reduce.
 
 The step is the one-process step, split: each half's loss divides by the whole batch's label
 counts (``train.nll_loss(counts=...)``), so the two gradients sum to the whole batch's
