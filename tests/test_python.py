@@ -370,3 +370,27 @@ def test_precision_keyword(golden_weights, golden_case):
             paraformer.Matcher.from_file(golden_weights, precision=bad)
         with pytest.raises(ValueError, match="precision"):
             paraformer.Matcher.pretrained(precision=bad)
+
+
+def test_training_attention_kernels_name_bad_arguments():
+    """The bf16 attention kernels that training calls (`train.py --native-attention`)
+    refuse wrong byte counts, widths and a non-finite scale or lse by name, on any CPU."""
+    from paraformer import _paraformer
+
+    bh, n, m, d = 2, 4, 3, 16
+    q, kv, lse = bytes(2 * bh * n * d), bytes(2 * bh * m * d), np.zeros(bh * n, np.float32).tobytes()
+    cases = [
+        (lambda: _paraformer.attention_forward_bf16(q[:-2], kv, kv, bh, n, m, d, 0.25), "q"),
+        (lambda: _paraformer.attention_forward_bf16(q, kv, kv[:-1], bh, n, m, d, 0.25), "v"),
+        (lambda: _paraformer.attention_forward_bf16(q, kv, kv, bh, n, m, 12, 0.25), "d"),
+        (lambda: _paraformer.attention_forward_bf16(q, b"", b"", bh, n, 0, d, 0.25), "k"),
+        (lambda: _paraformer.attention_backward_bf16(q, kv, kv, q, q, lse[:-4], bh, n, m, d, 0.25), "lse"),
+        (lambda: _paraformer.attention_backward_bf16(q, kv, kv, q, q, lse, bh, n, m, d, float("nan")), "scale"),
+        (lambda: _paraformer.attention_backward_bf16(
+            q, kv, kv, q, q, np.full(bh * n, np.inf, np.float32).tobytes(), bh, n, m, d, 0.25), "lse"),
+        (lambda: _paraformer.attention_backward_bf16(q, kv, kv, q, q[:-2], lse, bh, n, m, d, 0.25), "d_o"),
+    ]
+    for call, name in cases:
+        with pytest.raises(ValueError) as e:
+            call()
+        assert str(e.value).startswith(f"{name}:"), (name, str(e.value))

@@ -672,3 +672,42 @@ def test_inline_generator_writes_the_streams_next_shards(tmp_path):
     shard = stream.Shard(stream.shard_path(pool, 10))
     again = src.pair(10 * 2 + 1)
     assert np.array_equal(shard.views[2][0], again["f"][0]["keypoints"])  # pair 1 of shard 10, view 0
+
+
+def test_native_attention_equals_float64_as_closely_as_sdpa():
+    """train.py --native-attention: the engine's bf16 attention (forward with log-sum-exp,
+    blocked backward) against float64 autograd, at least as close as PyTorch's bf16 SDPA,
+    and across strip, pair and key-block edges (odd sizes, n ≠ m)."""
+    from paraformer import _paraformer
+    from paraformer_train.model import NativeAttention
+
+    if not _paraformer.attention_backward_bf16_available():
+        pytest.skip("this CPU lacks AVX-512 BF16: the native attention is not used here")
+    torch.manual_seed(2)
+    for b, n, m in ((2, 37, 301), (1, 300, 260)):
+        q, g = torch.randn(b, 3, n, 32) * 1.5, torch.randn(b, 3, n, 32)
+        k, v = torch.randn(b, 3, m, 32) * 1.5, torch.randn(b, 3, m, 32)
+        ins = [t.to(torch.bfloat16).double().requires_grad_() for t in (q, k, v)]
+        want_out = torch.nn.functional.scaled_dot_product_attention(*ins)
+        want_out.backward(g.to(torch.bfloat16).double())
+        want = torch.cat([t.grad.flatten() for t in ins])
+
+        def run(fn):
+            xs = [t.to(torch.bfloat16).requires_grad_() for t in (q, k, v)]
+            out = fn(*xs)
+            out.backward(g.to(torch.bfloat16))
+            return out.double(), torch.cat([t.grad.double().flatten() for t in xs])
+
+        rel = lambda a, w: float((a.detach() - w.detach()).norm() / w.detach().norm())  # noqa: E731
+        out, got = run(NativeAttention.apply)
+        sdpa_out, sdpa = run(torch.nn.functional.scaled_dot_product_attention)
+        assert rel(out, want_out) < 0.01 and rel(out, want_out) <= 1.5 * rel(sdpa_out, want_out) + 1e-3
+        assert rel(got, want) < 0.01 and rel(got, want) <= 1.5 * rel(sdpa, want) + 1e-3, (rel(got, want), rel(sdpa, want))
+
+
+def test_native_attention_flag_needs_bf16(tmp_path):
+    import subprocess
+
+    out = subprocess.run([sys.executable, str(ROOT / "training" / "train.py"), "--run", str(tmp_path / "r"),
+                          "--native-attention", "--pairs", "10"], capture_output=True, text=True)
+    assert out.returncode != 0 and "--native-attention" in out.stderr and "--bf16" in out.stderr, out.stderr

@@ -9,7 +9,10 @@ directions of the shared cross-attention, per layer). Rows:
     flash kernel, forward and backward);
   * ``explicit``: softmax(QKᵀ/√d)·V with autograd (the probabilities are stored);
   * ``flash_fwd_recompute_bwd``: the flash forward, and a backward that recomputes the
-    probabilities from its log-sum-exp with whole-matrix matmuls (no blocking).
+    probabilities from its log-sum-exp with whole-matrix matmuls (no blocking);
+  * ``native`` (bf16 only, on AVX-512 BF16 CPUs): the engine's forward and blocked backward
+    (``paraformer``'s ``attention_forward_bf16`` / ``attention_backward_bf16``; ``train.py
+    --native-attention``).
 
 Each row's gradient is compared with a float64 reference on the same inputs (cosine and
 relative error), so a faster row can be judged on its accuracy too.
@@ -24,8 +27,14 @@ import math
 import statistics
 import time
 
+import os
+import sys
+
 import torch
 import torch.nn.functional as F
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from paraformer_train.model import NativeAttention  # noqa: E402
 
 SHAPES = ((8, 512), (4, 1024), (2, 2048))  # (batch, keypoints) of the stream's step kinds
 HEADS, HEAD_DIM = 3, 32
@@ -64,6 +73,16 @@ ROWS = {"sdpa": F.scaled_dot_product_attention, "explicit": explicit,
         "flash_fwd_recompute_bwd": FlashRecompute.apply}
 
 
+def native_rows(dtype: torch.dtype) -> dict:
+    """The rows this run can time: ``native`` needs bf16 and the engine's kernels."""
+    try:
+        from paraformer import _paraformer
+        native = dtype == torch.bfloat16 and _paraformer.attention_backward_bf16_available()
+    except ImportError:
+        native = False
+    return {**ROWS, "native": NativeAttention.apply} if native else dict(ROWS)
+
+
 def gradients(fn, q, k, v, grad) -> torch.Tensor:
     q, k, v = (t.detach().clone().requires_grad_() for t in (q, k, v))
     fn(q, k, v).backward(grad.to(q.dtype))
@@ -82,6 +101,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     dtype = torch.bfloat16 if args.dtype == "bf16" else torch.float32
     torch.manual_seed(0)
+    rows = native_rows(dtype)
     results = []
     for batch, n in SHAPES:
         shape = (batch, HEADS, n, HEAD_DIM)
@@ -89,22 +109,22 @@ def main() -> None:
         q, k = torch.randn(shape) * 1.5, torch.randn(shape) * 1.5
         v, grad = torch.randn(shape), torch.randn(shape)
         reference = gradients(explicit, q.double(), k.double(), v.double(), grad.double())
-        inputs = {name: tuple(t.to(dtype).requires_grad_() for t in (q, k, v)) for name in ROWS}
+        inputs = {name: tuple(t.to(dtype).requires_grad_() for t in (q, k, v)) for name in rows}
         grad_in = grad.to(dtype)  # cast once, outside the timed backward
-        times = {name: {"forward": [], "backward": []} for name in ROWS}
+        times = {name: {"forward": [], "backward": []} for name in rows}
         for rep in range(args.reps + 2):  # two warm-up calls per row
-            order = list(ROWS) if rep % 2 == 0 else list(ROWS)[::-1]
+            order = list(rows) if rep % 2 == 0 else list(rows)[::-1]
             for name in order:
                 qq, kk, vv = inputs[name]
                 t0 = time.perf_counter()
-                out = ROWS[name](qq, kk, vv)
+                out = rows[name](qq, kk, vv)
                 t1 = time.perf_counter()
                 out.backward(grad_in)
                 t2 = time.perf_counter()
                 if rep >= 2:
                     times[name]["forward"].append(t1 - t0)
                     times[name]["backward"].append(t2 - t1)
-        for name, fn in ROWS.items():
+        for name, fn in rows.items():
             g = gradients(fn, *(t.to(dtype) for t in (q, k, v)), grad)
             fwd, bwd = (statistics.median_high(times[name][part]) * 1e3 for part in ("forward", "backward"))
             row = {"batch": batch, "keypoints": n, "row": name, "forward_ms": fwd, "backward_ms": bwd,

@@ -5,7 +5,10 @@
   * after: fused ``scaled_dot_product_attention`` and gradients through the last Sinkhorn
     iteration only, the earlier ones in the scaling domain without autograd (``train.py``);
   * after + bf16: the same with the network's forward under bfloat16 autocast
-    (``train.py --bf16``).
+    (``train.py --bf16``);
+  * after + bf16 + native attention: the same with the fused attention's forward and
+    backward in the project's engine (``train.py --bf16 --native-attention``; AVX-512 BF16
+    CPUs).
 
 Same model config, same batches (XFeat pairs from the stream), forward + backward + AdamW.
 ``--weights`` starts every variant from a ``train.py`` checkpoint instead of random
@@ -48,6 +51,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--weights", default=None, help="train.py checkpoint (last.pt) to start from")
+    ap.add_argument("--variants", default="before,after,bf16,native",
+                    help="comma-separated subset of before, after, bf16, native (ratios are to the first)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -60,11 +65,23 @@ def main() -> None:
     batches = [stream.collate([(shard, b * args.batch + i) for i in range(args.batch)], args.keypoints,
                               [False] * args.batch) for b in range(2)]
     cfg = preset(args.preset, args.dim, args.depth, args.heads) | {"sinkhorn_iterations": args.sinkhorn}
-    variants = {  # name: (fused attention, Sinkhorn, bf16 autocast)
-        "before (explicit attention, full Sinkhorn autograd)": (False, log_optimal_transport, False),
-        "after (SDPA, last-iteration Sinkhorn gradient)": (True, log_optimal_transport_last_grad, False),
-        "after + bf16 autocast (train.py --bf16)": (True, log_optimal_transport_last_grad, True),
+    known = {  # key: (name, (fused attention, Sinkhorn, bf16 autocast, native attention))
+        "before": ("before (explicit attention, full Sinkhorn autograd)", (False, log_optimal_transport, False, False)),
+        "after": ("after (SDPA, last-iteration Sinkhorn gradient)", (True, log_optimal_transport_last_grad, False, False)),
+        "bf16": ("after + bf16 autocast (train.py --bf16)", (True, log_optimal_transport_last_grad, True, False)),
+        "native": ("after + bf16 + native attention (--bf16 --native-attention)",
+                   (True, log_optimal_transport_last_grad, True, True)),
     }
+    keys = [k.strip() for k in args.variants.split(",") if k.strip()]
+    if not keys or any(k not in known for k in keys):
+        raise SystemExit(f"error: --variants {args.variants!r}: expected a comma-separated subset of {', '.join(known)}")
+    if "native" in keys:
+        from paraformer import _paraformer
+        if not _paraformer.attention_backward_bf16_available():
+            raise SystemExit("error: --variants native needs a CPU with AVX-512 BF16")
+    if "after" not in keys:
+        keys.insert(0, "after")  # the gradient reference
+    variants = dict(known[k] for k in keys)
     start = torch.load(args.weights, weights_only=False)["model"] if args.weights else None
     models = {}
     for name in variants:
@@ -76,8 +93,9 @@ def main() -> None:
     times = {name: [] for name in variants}
 
     def loss_of(name: str, bt: dict) -> torch.Tensor:
-        fused, sinkhorn, bf16 = variants[name]
+        fused, sinkhorn, bf16, native = variants[name]
         model_mod.FUSED_ATTENTION = fused
+        model_mod.NATIVE_ATTENTION = native
         m = models[name][0]
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             scores = m.scores(bt)
@@ -94,7 +112,7 @@ def main() -> None:
 
     # Gradient agreement before any step (all variants hold the same weights), against the
     # step train.py takes by default; the lower of the two batches.
-    base = list(variants)[1]
+    base = known["after"][0]
     ref = [gradient(base, bt) for bt in batches]
     agreement = {"two batches, one variant": cosine(ref[0], ref[1])}
     for name in variants:

@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from paraformer_train import stream  # noqa: E402
+from paraformer_train import model as model_mod, stream  # noqa: E402
 from paraformer_train.io import save_safetensors  # noqa: E402
 from paraformer_train.model import (Matcher, extract_matches, log_optimal_transport,  # noqa: E402
                                     log_optimal_transport_last_grad, pair_scores)
@@ -332,6 +332,11 @@ def main() -> None:
                     help="the network's forward under bfloat16 autocast: ~1.2x pairs/s on CPUs with "
                          "AVX512-BF16, gradients within 0.999 cosine of fp32 (bench_step.py); "
                          "validation and export stay fp32, and a run may switch it on or off at a resume")
+    ap.add_argument("--native-attention", action="store_true",
+                    help="with --bf16: the fused attention's forward and backward in the project's engine "
+                         "(paraformer attention_forward/backward_bf16, AVX-512 BF16 CPUs): 1.35-1.4x the "
+                         "step of --bf16 alone at the same gradient accuracy (bench_step.py, "
+                         "bench_attention.py); a run may switch it on or off at a resume")
     ap.add_argument("--unshare", nargs="*", choices=SHARING, default=[],
                     help="ParaFormer(-U): sharing switches to turn off (separate self/cross q/k/v, merges, "
                          "or cross-attention weights); more parameters at little CPU cost")
@@ -397,6 +402,16 @@ def main() -> None:
     if not 0.0 <= args.heavy_noise <= 1.0:
         sys.exit(f"error: --heavy-noise is a probability in [0, 1], got {args.heavy_noise}")
     decay_from = DECAY_FROM if args.decay_start is None else args.decay_start / args.pairs
+    if args.native_attention:
+        if not args.bf16:
+            sys.exit("error: --native-attention runs the bf16 attention; add --bf16")
+        try:
+            from paraformer import _paraformer
+        except ImportError as e:
+            sys.exit(f"error: --native-attention needs the paraformer package (pip install .): {e}")
+        if not _paraformer.attention_backward_bf16_available():
+            sys.exit("error: --native-attention needs a CPU with AVX-512 BF16; drop the flag")
+        model_mod.NATIVE_ATTENTION = True
 
     torch.set_num_threads(args.threads)
     name = os.path.basename(os.path.normpath(args.run))

@@ -124,12 +124,58 @@ def scaled_scores(q, k):
 
 
 FUSED_ATTENTION = True  # False: explicit softmax everywhere (the slower pre-SDPA path)
+# True (train.py --native-attention): bf16 fused attention in training runs in the project's
+# engine (NativeAttention) instead of PyTorch's CPU flash kernels.
+NATIVE_ATTENTION = False
+
+
+def _bf16_bytes(t: torch.Tensor) -> bytes:
+    return t.to(torch.bfloat16).contiguous().view(torch.int16).numpy().tobytes()
+
+
+def _bf16_tensor(b: bytes, shape) -> torch.Tensor:
+    return torch.frombuffer(bytearray(b), dtype=torch.bfloat16).view(shape)
+
+
+class NativeAttention(torch.autograd.Function):
+    """``softmax(q·kᵀ/√d)·v`` of bf16 ``[B, H, N, d]`` tensors in ``paraformer``'s engine:
+    ``attention_forward_bf16`` (output and the rows' log-sum-exp) and
+    ``attention_backward_bf16`` (blocked recomputation, flash-attention style), both with
+    bf16 products and fp32 sums, at the machine's bf16 rate where PyTorch's CPU flash
+    kernels run at a third to a half of it for head width 32 (``bench_attention.py``)."""
+
+    @staticmethod
+    def forward(ctx, q, k, v):
+        from paraformer import _paraformer  # the engine; only needed with the flag on
+
+        b, h, n, d = q.shape
+        m = k.shape[2]
+        o, lse = _paraformer.attention_forward_bf16(_bf16_bytes(q), _bf16_bytes(k), _bf16_bytes(v),
+                                                    b * h, n, m, d, 1.0 / math.sqrt(d))
+        out = _bf16_tensor(o, (b, h, n, d))
+        ctx.save_for_backward(q, k, v, out, torch.frombuffer(bytearray(lse), dtype=torch.float32))
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        from paraformer import _paraformer
+
+        q, k, v, out, lse = ctx.saved_tensors
+        b, h, n, d = q.shape
+        m = k.shape[2]
+        grads = _paraformer.attention_backward_bf16(
+            _bf16_bytes(q), _bf16_bytes(k), _bf16_bytes(v), _bf16_bytes(out), _bf16_bytes(grad),
+            lse.numpy().tobytes(), b * h, n, m, d, 1.0 / math.sqrt(d))
+        shapes = ((b, h, n, d), (b, h, m, d), (b, h, m, d))
+        return tuple(_bf16_tensor(g, s).to(t.dtype) for g, s, t in zip(grads, shapes, (q, k, v)))
 
 
 def attention(q, k, v, need_prob: bool = True):
     """Softmax attention; without ``need_prob`` it runs as one fused
     ``scaled_dot_product_attention`` (same value, far less memory traffic in training)."""
     if not need_prob and FUSED_ATTENTION:
+        if NATIVE_ATTENTION and q.dtype == torch.bfloat16 and torch.is_grad_enabled():
+            return merge_heads(NativeAttention.apply(q, k, v)), None
         return merge_heads(F.scaled_dot_product_attention(q, k, v)), None
     prob = scaled_scores(q, k).softmax(-1)
     return merge_heads(prob @ v), prob

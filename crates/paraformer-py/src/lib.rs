@@ -16,7 +16,7 @@ use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::pybacked::PyBackedBytes;
-use pyo3::types::{PyByteArray, PyDict};
+use pyo3::types::{PyByteArray, PyBytes, PyDict};
 
 create_exception!(paraformer, ParaformerError, PyException, "Base class of every paraformer error.");
 create_exception!(
@@ -711,6 +711,137 @@ fn flops(config_json: &str, m: usize, n: usize) -> PyResult<(u64, u64, u64)> {
     Ok((f.encoder, f.layers, f.final_projection))
 }
 
+/// Little-endian 16-bit values of `bytes`: borrowed where they are aligned, else copied.
+fn u16s(bytes: &[u8]) -> std::borrow::Cow<'_, [u16]> {
+    #[cfg(target_endian = "little")]
+    {
+        // SAFETY: every bit pattern is a valid u16; `align_to` splits off what is unaligned.
+        let (head, mid, tail) = unsafe { bytes.align_to::<u16>() };
+        if head.is_empty() && tail.is_empty() {
+            return std::borrow::Cow::Borrowed(mid);
+        }
+    }
+    std::borrow::Cow::Owned(bytes.chunks_exact(2).map(|b| u16::from_le_bytes([b[0], b[1]])).collect())
+}
+
+/// `v` as little-endian bytes: borrowed on little-endian machines.
+fn u16_bytes(v: &[u16]) -> std::borrow::Cow<'_, [u8]> {
+    #[cfg(target_endian = "little")]
+    {
+        // SAFETY: u8 has no alignment or validity requirement, so the middle is all of `v`.
+        let (head, mid, tail) = unsafe { v.align_to::<u8>() };
+        if head.is_empty() && tail.is_empty() {
+            return std::borrow::Cow::Borrowed(mid);
+        }
+    }
+    std::borrow::Cow::Owned(v.iter().flat_map(|x| x.to_le_bytes()).collect())
+}
+
+/// `v` as little-endian bytes.
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Softmax attention of bf16 operands with the rows' log-sum-exp, for training (the
+/// forward that `attention_backward_bf16` pairs with; AVX-512 BF16 CPUs only).
+///
+/// Args:
+///     q: `[bh, n, d]` bfloat16 bits as little-endian uint16 bytes (queries).
+///     k: `[bh, m, d]` bfloat16 bits (keys).
+///     v: `[bh, m, d]` bfloat16 bits (values).
+///     bh: independent heads (batch × heads).
+///     n: query rows.
+///     m: key rows (at least 1 when there are queries).
+///     d: head width, 16, 32 or 64.
+///     scale: the factor of the scores, usually `1/√d`.
+/// Returns:
+///     `(o, lse)`: `softmax(scale·q·kᵀ)·v` as bfloat16 bits `[bh, n, d]`, and
+///     `log Σ_j exp(scale·q_i·k_j)` as float32 little-endian bytes `[bh, n]`.
+#[pyfunction]
+#[pyo3(signature = (q, k, v, bh, n, m, d, scale))]
+#[allow(clippy::too_many_arguments)]
+fn attention_forward_bf16<'py>(
+    py: Python<'py>,
+    q: PyBackedBytes,
+    k: PyBackedBytes,
+    v: PyBackedBytes,
+    bh: usize,
+    n: usize,
+    m: usize,
+    d: usize,
+    scale: f32,
+) -> PyResult<(Bound<'py, PyBytes>, Bound<'py, PyBytes>)> {
+    for (name, b) in [("q", &q), ("k", &k), ("v", &v)] {
+        if b.len() % 2 != 0 {
+            return Err(PyValueError::new_err(format!("{name}: {} bytes, not a whole number of 2-byte values", b.len())));
+        }
+    }
+    let (o, lse) = py
+        .detach(|| paraformer::attention_grad::attention_forward_bf16(&u16s(&q), &u16s(&k), &u16s(&v), bh, n, m, d, scale))
+        .map_err(to_py_err)?;
+    Ok((PyBytes::new(py, &u16_bytes(&o)), PyBytes::new(py, &f32_bytes(&lse))))
+}
+
+/// Gradients of softmax attention from bf16 operands, for training (the flash-attention
+/// backward with bf16 products and fp32 accumulation; AVX-512 BF16 CPUs only).
+///
+/// Args:
+///     q: `[bh, n, d]` bfloat16 bits as little-endian uint16 bytes (queries).
+///     k: `[bh, m, d]` bfloat16 bits (keys).
+///     v: `[bh, m, d]` bfloat16 bits (values).
+///     o: `[bh, n, d]` bfloat16 bits (the forward's output).
+///     d_o: `[bh, n, d]` bfloat16 bits (the gradient of the output).
+///     lse: `[bh, n]` float32 little-endian bytes: log Σ_j exp(scale·q_i·k_j) per row.
+///     bh: independent heads (batch × heads).
+///     n: query rows.
+///     m: key rows.
+///     d: head width, 16, 32 or 64.
+///     scale: the factor of the scores, usually `1/√d`.
+/// Returns:
+///     `(dq, dk, dv)`: bfloat16 bits as little-endian uint16 bytes, in the layouts of `q`,
+///     `k`, `v`.
+#[pyfunction]
+#[pyo3(signature = (q, k, v, o, d_o, lse, bh, n, m, d, scale))]
+#[allow(clippy::too_many_arguments)]
+fn attention_backward_bf16<'py>(
+    py: Python<'py>,
+    q: PyBackedBytes,
+    k: PyBackedBytes,
+    v: PyBackedBytes,
+    o: PyBackedBytes,
+    d_o: PyBackedBytes,
+    lse: PyBackedBytes,
+    bh: usize,
+    n: usize,
+    m: usize,
+    d: usize,
+    scale: f32,
+) -> PyResult<(Bound<'py, PyBytes>, Bound<'py, PyBytes>, Bound<'py, PyBytes>)> {
+    for (name, b, width) in [("q", &q, 2), ("k", &k, 2), ("v", &v, 2), ("o", &o, 2), ("d_o", &d_o, 2), ("lse", &lse, 4)] {
+        if b.len() % width != 0 {
+            return Err(PyValueError::new_err(format!("{name}: {} bytes, not a whole number of {width}-byte values", b.len())));
+        }
+    }
+    let (dq, dk, dv) = py
+        .detach(|| {
+            let lse = f32_from_le(&lse);
+            paraformer::attention_grad::attention_backward_bf16(&u16s(&q), &u16s(&k), &u16s(&v), &u16s(&o), &u16s(&d_o), &lse, bh, n, m, d, scale)
+        })
+        .map_err(to_py_err)?;
+    Ok((PyBytes::new(py, &u16_bytes(&dq)), PyBytes::new(py, &u16_bytes(&dk)), PyBytes::new(py, &u16_bytes(&dv))))
+}
+
+/// Whether this CPU runs `attention_forward_bf16` and `attention_backward_bf16` (AVX-512
+/// F, BW and BF16).
+///
+/// Returns:
+///     True where the instructions are present.
+#[pyfunction]
+#[pyo3(signature = ())]
+fn attention_backward_bf16_available() -> bool {
+    paraformer::attention_grad::available()
+}
+
 /// The native core of the `paraformer` package.
 #[pymodule]
 fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -731,6 +862,9 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(load_image, m)?,
         wrap_pyfunction!(set_memory_limit, m)?,
         wrap_pyfunction!(memory_limit, m)?,
+        wrap_pyfunction!(attention_forward_bf16, m)?,
+        wrap_pyfunction!(attention_backward_bf16, m)?,
+        wrap_pyfunction!(attention_backward_bf16_available, m)?,
     ] {
         m.add_function(f)?;
     }

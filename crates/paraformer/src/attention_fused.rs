@@ -56,7 +56,7 @@ pub fn cross_attention_shared(
 }
 
 #[cfg(target_arch = "x86_64")]
-mod x86 {
+pub(crate) mod x86 {
 use std::arch::x86_64::*;
 
 use rayon::prelude::*;
@@ -65,7 +65,7 @@ use crate::error::Result;
 use crate::kernels::{internal, to_bf16, Matrix, SharedMut, View};
 
 /// Query rows per strip: the unit of the score buffer (`STRIP × N` floats).
-const STRIP: usize = 16;
+pub(crate) const STRIP: usize = 16;
 /// Query rows per task of the shared cross attention (fixed, for reproducible sums).
 const CROSS_ROWS: usize = 256;
 /// At most this many cross-attention tasks per head: each holds an `N × d` column state
@@ -199,7 +199,7 @@ unsafe fn exp2_poly<const N: usize>(x: __m512, coef: [f32; N]) -> __m512 {
 
 /// `2^x` to 2.4e-7 relative error (degree-5 minimax).
 #[inline(always)]
-unsafe fn exp2v(x: __m512) -> __m512 {
+pub(crate) unsafe fn exp2v(x: __m512) -> __m512 {
     exp2_poly(x, [1.000_000_1, 0.693_146_94, 0.240_221_2, 0.055_507_13, 0.009_675_541, 0.001_327_647_1])
 }
 
@@ -212,7 +212,7 @@ unsafe fn exp2v_bf16(x: __m512) -> __m512 {
 
 /// Lanes `j0..j0+16` that lie below `n`.
 #[inline(always)]
-fn lane_mask(n: usize, j0: usize) -> __mmask16 {
+pub(crate) fn lane_mask(n: usize, j0: usize) -> __mmask16 {
     if n >= j0 + 16 {
         0xFFFF
     } else if n <= j0 {
@@ -249,7 +249,7 @@ unsafe fn scores_f32<const D: usize>(q: *const f32, kp: *const f32, n: usize, np
 
 /// The same scores from bf16 pairs (`vdpbf16ps`, fp32 accumulation).
 #[inline(always)]
-unsafe fn scores_bf16<const D: usize>(q: *const u16, kp: *const u16, n: usize, np: usize, s: *mut f32, ld: usize) {
+pub(crate) unsafe fn scores_bf16<const D: usize>(q: *const u16, kp: *const u16, n: usize, np: usize, s: *mut f32, ld: usize) {
     let neg = _mm512_set1_ps(f32::NEG_INFINITY);
     for rt in (0..STRIP).step_by(8) {
         for p in (0..np / 16).step_by(2) {
@@ -337,7 +337,7 @@ unsafe fn values_f32<const D: usize>(p: *const f32, ld: usize, n: usize, v: *con
 /// The same from bf16 probabilities `p16` (`[16][np]`) and values packed by
 /// [`pack_values_bf16`] (pairs of rows; `n` rounded up to even, padding is zero).
 #[inline(always)]
-unsafe fn values_bf16<const D: usize>(p16: *const u16, ld: usize, n: usize, v16: *const u16, out: &mut [[f32; 64]; STRIP]) {
+pub(crate) unsafe fn values_bf16<const D: usize>(p16: *const u16, ld: usize, n: usize, v16: *const u16, out: &mut [[f32; 64]; STRIP]) {
     let dv = D / 16;
     let rows = 16 / dv;
     for r0 in (0..STRIP).step_by(rows) {

@@ -38,6 +38,7 @@
 pub mod attention;
 #[doc(hidden)]
 pub mod attention_fused;
+pub mod attention_grad;
 pub mod config;
 #[doc(hidden)]
 pub mod conv_direct;
