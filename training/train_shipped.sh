@@ -18,6 +18,11 @@ case "$name" in
   *) echo "unknown model $name" >&2; exit 2 ;;
 esac
 mkdir -p runs
+# libgomp's idle threads spin for ~300k iterations after each PyTorch op by default; with
+# --native-attention the engine's own (rayon) threads run between those ops and lose a core
+# to the spinning. 20,000 measured best (bench_step.py, w96, --native-attention: 0.389 ->
+# 0.299 s at 512 x 8, 0.668 -> 0.550 at 1024 x 4, 0.849 -> 0.785 at 2048 x 2; PASSIVE between).
+export GOMP_SPINCOUNT=${GOMP_SPINCOUNT:-20000}
 # --pairs sets the learning-rate schedule: constant, then cosine to 10% from 60% of it. For
 # the 64-wide runs it was 400,000 until 50,000 pairs; validation had been flat since 10,000
 # (F1@512 0.51-0.54) at the constant rate, so they anneal at 60,000-100,000.
