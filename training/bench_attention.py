@@ -77,7 +77,7 @@ def native_rows(dtype: torch.dtype) -> dict:
     """The rows this run can time: ``native`` needs bf16 and the engine's kernels."""
     try:
         from paraformer import _paraformer
-        native = dtype == torch.bfloat16 and _paraformer.attention_backward_bf16_available()
+        native = dtype == torch.bfloat16 and _paraformer.attention_bf16_available()
     except ImportError:
         native = False
     return {**ROWS, "native": NativeAttention.apply} if native else dict(ROWS)

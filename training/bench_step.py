@@ -77,7 +77,7 @@ def main() -> None:
         raise SystemExit(f"error: --variants {args.variants!r}: expected a comma-separated subset of {', '.join(known)}")
     if "native" in keys:
         from paraformer import _paraformer
-        if not _paraformer.attention_backward_bf16_available():
+        if not _paraformer.attention_bf16_available():
             raise SystemExit("error: --variants native needs a CPU with AVX-512 BF16")
     if "after" not in keys:
         keys.insert(0, "after")  # the gradient reference

@@ -409,7 +409,7 @@ def main() -> None:
             from paraformer import _paraformer
         except ImportError as e:
             sys.exit(f"error: --native-attention needs the paraformer package (pip install .): {e}")
-        if not _paraformer.attention_backward_bf16_available():
+        if not _paraformer.attention_bf16_available():
             sys.exit("error: --native-attention needs a CPU with AVX-512 BF16; drop the flag")
         model_mod.NATIVE_ATTENTION = True
 

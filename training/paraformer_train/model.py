@@ -150,24 +150,22 @@ class NativeAttention(torch.autograd.Function):
 
         b, h, n, d = q.shape
         m = k.shape[2]
-        o, lse = _paraformer.attention_forward_bf16(_bf16_bytes(q), _bf16_bytes(k), _bf16_bytes(v),
-                                                    b * h, n, m, d, 1.0 / math.sqrt(d))
-        out = _bf16_tensor(o, (b, h, n, d))
-        ctx.save_for_backward(q, k, v, out, torch.frombuffer(bytearray(lse), dtype=torch.float32))
-        return out
+        operands = tuple(_bf16_bytes(t) for t in (q, k, v))
+        o, lse = _paraformer.attention_forward_bf16(*operands, b * h, n, m, d, 1.0 / math.sqrt(d))
+        # The backward takes the same bytes: kept here, not serialised again from tensors.
+        ctx.operands, ctx.o, ctx.lse = operands, o, lse
+        ctx.dims, ctx.dtypes = (b, h, n, m, d), (q.dtype, k.dtype, v.dtype)
+        return _bf16_tensor(o, (b, h, n, d))
 
     @staticmethod
     def backward(ctx, grad):
         from paraformer import _paraformer
 
-        q, k, v, out, lse = ctx.saved_tensors
-        b, h, n, d = q.shape
-        m = k.shape[2]
-        grads = _paraformer.attention_backward_bf16(
-            _bf16_bytes(q), _bf16_bytes(k), _bf16_bytes(v), _bf16_bytes(out), _bf16_bytes(grad),
-            lse.numpy().tobytes(), b * h, n, m, d, 1.0 / math.sqrt(d))
+        b, h, n, m, d = ctx.dims
+        grads = _paraformer.attention_backward_bf16(*ctx.operands, ctx.o, _bf16_bytes(grad), ctx.lse,
+                                                    b * h, n, m, d, 1.0 / math.sqrt(d))
         shapes = ((b, h, n, d), (b, h, m, d), (b, h, m, d))
-        return tuple(_bf16_tensor(g, s).to(t.dtype) for g, s, t in zip(grads, shapes, (q, k, v)))
+        return tuple(_bf16_tensor(g, s).to(t) for g, s, t in zip(grads, shapes, ctx.dtypes))
 
 
 def attention(q, k, v, need_prob: bool = True):

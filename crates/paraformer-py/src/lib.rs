@@ -838,7 +838,7 @@ fn attention_backward_bf16<'py>(
 ///     True where the instructions are present.
 #[pyfunction]
 #[pyo3(signature = ())]
-fn attention_backward_bf16_available() -> bool {
+fn attention_bf16_available() -> bool {
     paraformer::attention_grad::available()
 }
 
@@ -864,7 +864,7 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(memory_limit, m)?,
         wrap_pyfunction!(attention_forward_bf16, m)?,
         wrap_pyfunction!(attention_backward_bf16, m)?,
-        wrap_pyfunction!(attention_backward_bf16_available, m)?,
+        wrap_pyfunction!(attention_bf16_available, m)?,
     ] {
         m.add_function(f)?;
     }
