@@ -137,7 +137,8 @@ def main() -> None:
                   flush=True)
     if args.json:
         meta = {"threads": args.threads, "dtype": args.dtype, "heads": HEADS, "head_dim": HEAD_DIM,
-                "torch": torch.__version__, "reps": args.reps, "statistic": "median per call"}
+                "torch": torch.__version__, "reps": args.reps, "statistic": "median per call",
+                "env": {k: os.environ.get(k) for k in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY", "RAYON_NUM_THREADS")}}
         with open(args.json, "w") as f:
             json.dump({"meta": meta, "results": results}, f, indent=1)
 

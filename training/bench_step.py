@@ -146,7 +146,9 @@ def main() -> None:
         print(f"{name:55s} {r['s_per_step']:.3f} s/step  {r['pairs_per_s']:.1f} pairs/s  {r['speedup']:.2f}x")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"args": vars(args), "config": cfg, "results": res, "gradient_cosine": agreement}, f, indent=1)
+            # The thread pools' spin settings change the native row (train_shipped.sh sets GOMP_SPINCOUNT).
+            env = {k: os.environ.get(k) for k in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY", "RAYON_NUM_THREADS")}
+            json.dump({"args": vars(args), "env": env, "config": cfg, "results": res, "gradient_cosine": agreement}, f, indent=1)
 
 
 if __name__ == "__main__":
