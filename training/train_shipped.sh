@@ -23,6 +23,13 @@ mkdir -p runs
 # to the spinning. 20,000 measured best (bench_step.py, w96, --native-attention: 0.389 ->
 # 0.299 s at 512 x 8, 0.668 -> 0.550 at 1024 x 4, 0.849 -> 0.785 at 2048 x 2; PASSIVE between).
 export GOMP_SPINCOUNT=${GOMP_SPINCOUNT:-20000}
+# glibc hands blocks above its mmap threshold back to the kernel and trims the heap's top, so
+# each step faults in its large buffers afresh (the native attention's byte buffers, the
+# 2049 x 2049 couplings). Keeping them: 0.689-0.770 -> 0.570-0.581 s per native step at
+# 2048 x 2, unchanged at 512 x 8 (bench_step.py, three alternated rounds of separate processes).
+export MALLOC_MMAP_THRESHOLD_=${MALLOC_MMAP_THRESHOLD_:-4000000000}
+export MALLOC_TRIM_THRESHOLD_=${MALLOC_TRIM_THRESHOLD_:-4000000000}
+export MALLOC_TOP_PAD_=${MALLOC_TOP_PAD_:-268435456}
 # --pairs sets the learning-rate schedule: constant, then cosine to 10% from 60% of it. For
 # the 64-wide runs it was 400,000 until 50,000 pairs; validation had been flat since 10,000
 # (F1@512 0.51-0.54) at the constant rate, so they anneal at 60,000-100,000.

@@ -383,6 +383,17 @@ impl Fit {
     }
 }
 
+/// One turn of image1 tried by `match --rotations`: its features, matches, correspondences
+/// (image1's points in its own frame) and geometric fit.
+struct Turn {
+    quarters: usize,
+    f1: paraformer::Features,
+    m0: Vec<i64>,
+    x0: Vec<[f64; 2]>,
+    x1: Vec<[f64; 2]>,
+    fit: Fit,
+}
+
 fn fit_model(geometry: &str, x0: &[[f64; 2]], x1: &[[f64; 2]], threshold: f64) -> paraformer::Result<Fit> {
     use paraformer::geometry::{epipolar, homography, RansacConfig};
     let cfg = RansacConfig { threshold, ..Default::default() };
@@ -467,7 +478,7 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     // Image1 as given, and with --rotations 4 also turned by 90, 180, 270°: the turn with
     // the most inliers is kept, its points mapped back into image1's own frame.
     let (mut t_extract1, mut t_match, mut t_geometry) = (0.0, 0.0, 0.0);
-    let mut best: Option<(usize, paraformer::Features, Vec<i64>, Vec<[f64; 2]>, Vec<[f64; 2]>, Fit)> = None;
+    let mut best: Option<Turn> = None;
     for quarters in 0..a.rotations {
         let t = Instant::now();
         let f1 = name_image(xfeat.detect_and_compute(&img1.rotate90(quarters), Some(a.max_keypoints)), &a.image1)?;
@@ -480,11 +491,11 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
         let t = Instant::now();
         let fit = fit_model(&a.geometry, &x0, &x1, a.threshold)?;
         t_geometry += ms(t);
-        if best.as_ref().is_none_or(|b| fit.count() > b.5.count()) {
-            best = Some((quarters, f1, m0, x0, x1, fit));
+        if best.as_ref().is_none_or(|b| fit.count() > b.fit.count()) {
+            best = Some(Turn { quarters, f1, m0, x0, x1, fit });
         }
     }
-    let Some((quarters, f1, m0, x0, x1, fit)) = best else {
+    let Some(Turn { quarters, f1, m0, x0, x1, fit }) = best else {
         return Err(input_error("--rotations", "must be 1 or 4"));
     };
     let t = Instant::now();

@@ -191,7 +191,7 @@ fn every_subcommand_and_argument_has_help() {
             }
             if section && !line.trim().is_empty() && line.starts_with("  ") && !line.starts_with("          ") {
                 // "  <NAME>  text" / "  --flag <V>  text": something after the name column
-                let described = line.trim().splitn(2, "  ").nth(1).is_some_and(|t| !t.trim().is_empty());
+                let described = line.trim().split_once("  ").is_some_and(|(_, t)| !t.trim().is_empty());
                 assert!(described, "{args:?}: no help for `{}`", line.trim());
             }
         }

@@ -86,14 +86,12 @@ enum WeightsArg {
 
 fn output_dict<'py>(py: Python<'py>, out: &MatchOutput) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
-    let bytes_i64 = |v: &[i64]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-    let bytes_f32 = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-    d.set_item("matches0", PyByteArray::new(py, &bytes_i64(&out.matches0)))?;
-    d.set_item("matches1", PyByteArray::new(py, &bytes_i64(&out.matches1)))?;
-    d.set_item("matching_scores0", PyByteArray::new(py, &bytes_f32(&out.matching_scores0)))?;
-    d.set_item("matching_scores1", PyByteArray::new(py, &bytes_f32(&out.matching_scores1)))?;
+    d.set_item("matches0", PyByteArray::new(py, &i64_bytes(&out.matches0)))?;
+    d.set_item("matches1", PyByteArray::new(py, &i64_bytes(&out.matches1)))?;
+    d.set_item("matching_scores0", PyByteArray::new(py, &f32_bytes(&out.matching_scores0)))?;
+    d.set_item("matching_scores1", PyByteArray::new(py, &f32_bytes(&out.matching_scores1)))?;
     if let Some(la) = &out.log_assignment {
-        d.set_item("log_assignment", (PyByteArray::new(py, &bytes_f32(&la.data)), la.rows, la.cols))?;
+        d.set_item("log_assignment", (PyByteArray::new(py, &f32_bytes(&la.data)), la.rows, la.cols))?;
     }
     Ok(d)
 }
@@ -600,9 +598,8 @@ fn xfeat(subpixel: bool) -> PyResult<&'static XFeat> {
 type Extracted = (Vec<u8>, Vec<u8>, Vec<u8>, f32, f32);
 
 fn extracted(f: Features) -> Extracted {
-    let le = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
     let kpts: Vec<f32> = f.keypoints.iter().flatten().copied().collect();
-    (le(&kpts), le(&f.scores), le(&f.descriptors), f.image_size.0, f.image_size.1)
+    (f32_bytes(&kpts), f32_bytes(&f.scores), f32_bytes(&f.descriptors), f.image_size.0, f.image_size.1)
 }
 
 /// XFeat keypoints and descriptors of an image given as pixels.
@@ -621,6 +618,7 @@ fn extracted(f: Features) -> Extracted {
 ///     `[K, 64]` and the image size.
 #[pyfunction]
 #[pyo3(signature = (pixels, height, width, channels, top_k, dtype = "f32", subpixel = false))]
+#[allow(clippy::too_many_arguments)]
 fn extract(
     py: Python<'_>,
     pixels: PyBackedBytes,
@@ -691,7 +689,7 @@ fn memory_limit() -> u64 {
 #[pyo3(signature = (path,))]
 fn load_image(py: Python<'_>, path: PathBuf) -> PyResult<(Vec<u8>, usize, usize)> {
     py.detach(|| GrayImage::open(&path))
-        .map(|img| (img.data.iter().flat_map(|v| v.to_le_bytes()).collect(), img.width, img.height))
+        .map(|img| (f32_bytes(&img.data), img.width, img.height))
         .map_err(to_py_err)
 }
 
@@ -739,6 +737,11 @@ fn u16_bytes(v: &[u16]) -> std::borrow::Cow<'_, [u8]> {
 
 /// `v` as little-endian bytes.
 fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// `v` as little-endian bytes.
+fn i64_bytes(v: &[i64]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
 

@@ -446,7 +446,7 @@ mod tests {
     }
 
     /// Float64 attention forward and backward on the bf16 values: (o, lse, dq, dk, dv).
-    #[allow(clippy::type_complexity)]
+    #[allow(clippy::type_complexity, clippy::too_many_arguments)]
     fn reference(q: &[u16], k: &[u16], v: &[u16], d_o: &[u16], bh: usize, n: usize, m: usize, d: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
         let scale = 1.0 / (d as f64).sqrt();
         let (mut o, mut lse) = (vec![0.0; bh * n * d], vec![0.0; bh * n]);
