@@ -9,8 +9,10 @@ the ratio to LighterGlue is what the issue's latency budget reads (at most 0.5).
     python benches/config_latency.py --threads 2 --json benches/results/config_latency_2threads.json
     python benches/config_latency.py --config h2=64,2,4 --config unshared=64,2,4,qkv,merge
 
-A config is NAME=DIM,HEADS,DEPTH[,SWITCH...], SWITCH one of ``train.py --unshare``'s
-(qkv, merge, attention_weights: turned off); Sinkhorn runs the shipped model's iterations unless --sinkhorn says. Latency does not depend on the
+A config is NAME=[u:]DIM,HEADS,DEPTH[,SWITCH...], SWITCH one of ``train.py --unshare``'s
+(qkv, merge, attention_weights: turned off); ``u:`` makes it the ParaFormer-U of outer width
+DIM that ``train.py --preset paraformer_u`` trains (its stage depths are fixed, DEPTH is not
+read), e.g. ``--config w96=96,3,4 --config u96=u:96,3,4``; Sinkhorn runs the shipped model's iterations unless --sinkhorn says. Latency does not depend on the
 weights' values (the engine has no data-dependent paths besides the match count).
 """
 from __future__ import annotations
@@ -29,11 +31,13 @@ DEFAULT_CONFIGS = ["h2=64,2,4", "unshared=64,2,4,qkv,merge", "depth6=64,2,6", "d
 
 
 def parse_config(text: str) -> tuple[str, dict]:
-    """``NAME=DIM,HEADS,DEPTH[,SWITCH...]`` → (name, the model config ``train.py`` would train)."""
+    """``NAME=[u:]DIM,HEADS,DEPTH[,SWITCH...]`` → (name, the model config ``train.py`` would train)."""
     name, sep, spec = text.partition("=")
+    u = spec.startswith("u:")
+    spec = spec.removeprefix("u:")
     fields = spec.split(",")
     if not sep or not name or len(fields) < 3:
-        raise SystemExit(f"error: --config {text!r}: expected NAME=DIM,HEADS,DEPTH[,SWITCH...]")
+        raise SystemExit(f"error: --config {text!r}: expected NAME=[u:]DIM,HEADS,DEPTH[,SWITCH...]")
     try:
         dim, heads, depth = (int(v) for v in fields[:3])
     except ValueError:
@@ -43,10 +47,13 @@ def parse_config(text: str) -> tuple[str, dict]:
     from train import model_config  # training/train.py: the config a run trains (imports torch)
 
     try:
-        cfg = model_config({"preset": "paraformer", "dim": dim, "heads": heads, "depth": depth, "sinkhorn": 0,
-                            "unshare": fields[3:]})
+        cfg = model_config({"preset": "paraformer_u" if u else "paraformer", "dim": dim, "heads": heads,
+                            "depth": depth, "sinkhorn": 0, "unshare": fields[3:]})
     except ValueError as e:
         raise SystemExit(f"error: --config {text!r}: {e}") from None
+    widths = cfg.get("stage_dims", [dim]) if u else [dim]
+    if any(w % heads for w in widths):
+        raise SystemExit(f"error: --config {text!r}: the U's stage widths {widths} must be multiples of HEADS")
     del cfg["sinkhorn_iterations"]  # main sets the run's
     return name, cfg
 

@@ -1,6 +1,7 @@
 """The pure helpers of the evaluation scripts: the reconstruction table and the calibration's
 match precision (numbers a README and a shipping decision are built from)."""
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
@@ -167,3 +168,25 @@ def test_evaluate_matcher_spec_overrides_and_names_bad_ones(tmp_path):
                       (f"a={w}@high", "threshold 'high'"), (f"a={w}@0.5:many", "iterations 'many'")):
         with pytest.raises(SystemExit, match=what):
             ev.matcher_spec(bad)
+
+
+def test_config_latency_parses_paraformer_and_u_configs():
+    """benches/config_latency.py: ``NAME=[u:]DIM,HEADS,DEPTH[,SWITCH...]`` gives the config
+    train.py trains, ``u:`` the ParaFormer-U of that outer width; bad specs exit with the
+    spec and the rule named."""
+    import pytest
+
+    sys.path.insert(0, str(ROOT / "training"))
+    try:
+        mod = load(ROOT / "benches" / "config_latency.py", "config_latency")
+        name, cfg = mod.parse_config("w96=96,3,4,qkv")
+        assert name == "w96" and cfg["model"] == "paraformer" and (cfg["dim"], cfg["num_layers"]) == (96, 4)
+        assert cfg["parallel"]["share_qkv"] is False
+        name, cfg = mod.parse_config("u96=u:96,3,4")
+        assert cfg["model"] == "paraformer_u" and cfg["stage_dims"] == [96, 144, 48, 144, 96]
+        for spec, needle in (("u=u:32,32,4", "stage widths [32, 48, 16, 48, 32]"), ("x=96,5,4", "multiple of HEADS"),
+                             ("x=96,3", "expected NAME="), ("x=u:a,3,4", "must be integers")):
+            with pytest.raises(SystemExit, match=re.escape(needle)):
+                mod.parse_config(spec)
+    finally:
+        sys.path.remove(str(ROOT / "training"))

@@ -354,6 +354,50 @@ def test_grown_model_computes_what_its_init_did():
         load_init(deep, {k: v for k, v in small.state_dict().items() if k != "final_proj.bias"})
 
 
+def test_u_warm_started_from_a_paraformer_computes_its_outer_layers():
+    """`--init` of a ParaFormer checkpoint into a ParaFormer-U run: the U's outer stages take
+    the first and last layer, the unpooling back to the outer width starts at zero, so the U
+    scores as the two-layer ParaFormer of those layers; the inner stages are fresh."""
+    from train import load_init, model_config
+    from paraformer_train.model import Matcher
+
+    args = {"dim": 32, "heads": 2, "depth": 4, "sinkhorn": 20}
+    torch.manual_seed(0)
+    parent = Matcher(model_config(args | {"preset": "paraformer"})).eval()
+    u = Matcher(model_config(args | {"preset": "paraformer_u"})).eval()
+    fresh = load_init(u, parent.state_dict())
+    assert fresh == ["pools.0", "pools.1", "stages.1", "stages.2", "stages.3", "unpools.0", "unpools.1"]
+    outer = {k: v for k, v in parent.state_dict().items() if not k.startswith(("layers.1.", "layers.2."))}
+    two = Matcher(model_config(args | {"preset": "paraformer", "depth": 2})).eval()
+    two.load_state_dict({k.replace("layers.3.", "layers.1."): v for k, v in outer.items()})
+    data = _random_pair()
+    with torch.no_grad():
+        assert torch.allclose(u.scores(data), two.scores(data), atol=1e-5)
+        assert not torch.allclose(u.scores(data), parent.scores(data), atol=1e-3)
+    assert torch.count_nonzero(u.unpools[1].proj.weight) == 0
+    assert torch.count_nonzero(u.unpools[0].proj.weight) > 0
+    # Another outer width does not fit.
+    wide = Matcher(model_config(args | {"preset": "paraformer_u", "dim": 48, "heads": 2}))
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        load_init(wide, parent.state_dict())
+
+
+def test_u_stage_widths_and_pooling_arguments():
+    """`--stage-dims` / `--pooling` shape a ParaFormer-U run (and are refused elsewhere or when
+    the widths cannot hold the run: outer widths other than --dim, widths not divisible by heads)."""
+    from train import model_config
+
+    args = {"preset": "paraformer_u", "dim": 96, "heads": 3, "depth": 4, "sinkhorn": 20}
+    cfg = model_config(args | {"stage_dims": [96, 96, 48, 96, 96], "pooling": "gpool"})
+    assert cfg["stage_dims"] == [96, 96, 48, 96, 96] and cfg["pooling"] == "gpool"
+    assert model_config(args)["stage_dims"] == [96, 144, 48, 144, 96]
+    for extra, needle in (({"stage_dims": [64, 96, 48, 96, 96]}, "begin and end with dim 96"),
+                          ({"stage_dims": [96, 96, 40, 96, 96]}, "multiple of heads 3"),
+                          ({"preset": "paraformer", "pooling": "gpool"}, "ParaFormer-U's")):
+        with pytest.raises(ValueError, match=needle):
+            model_config(args | extra)
+
+
 def test_layer_loss_ends_with_the_models_own_loss():
     """`--layer-loss`: one loss per layer from `layer_states`, the last equal to the plain
     loss of `scores`; the training-only heads start as copies of the model's head."""

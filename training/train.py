@@ -38,11 +38,11 @@ from paraformer_train.model import (Matcher, extract_matches, log_optimal_transp
                                     log_optimal_transport_last_grad, pair_scores)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare")
+MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare", "stage_dims", "pooling")
 # A resume refuses a change of these (the model's, and --layer-loss, whose heads are in the
 # optimiser's state); runs saved before an argument existed trained with its default here.
 RESUME_ARGS = MODEL_ARGS + ("layer_loss",)
-RESUME_DEFAULTS = {"unshare": [], "layer_loss": False}
+RESUME_DEFAULTS = {"unshare": [], "layer_loss": False, "stage_dims": None, "pooling": None}
 SHARING = ("qkv", "merge", "attention_weights")
 
 
@@ -66,6 +66,17 @@ def model_config(args: dict) -> dict:
     """The model config of a run from its arguments (``MODEL_ARGS``; as saved in checkpoints).
     ``unshare`` lists the parallel layers' sharing switches turned off (SPEC §5)."""
     cfg = preset(args["preset"], args["dim"], args["depth"], args["heads"]) | {"sinkhorn_iterations": args["sinkhorn"]}
+    dims, pooling = args.get("stage_dims"), args.get("pooling")
+    if (dims or pooling) and cfg["model"] != "paraformer_u":
+        raise ValueError(f"stage_dims and pooling are ParaFormer-U's; the {args['preset']!r} preset has neither")
+    if dims:
+        if len(dims) != 5 or dims[0] != args["dim"] or dims[4] != args["dim"]:
+            raise ValueError(f"stage_dims {dims}: expected five widths that begin and end with dim {args['dim']}")
+        if any(d % args["heads"] for d in dims):
+            raise ValueError(f"stage_dims {dims}: every width must be a multiple of heads {args['heads']}")
+        cfg["stage_dims"] = list(dims)
+    if pooling:
+        cfg["pooling"] = pooling
     unshare = args.get("unshare") or []
     if unshare:
         bad = sorted(set(unshare) - set(SHARING))
@@ -131,6 +142,8 @@ def load_init(model: Matcher, state: dict) -> list[int]:
     has them separate (``unshare_state``). Returns the indices of the new layers."""
     own = model.state_dict()
     state = unshare_state(state, own)
+    if model.config["model"] == "paraformer_u" and any(k.startswith("layers.") for k in state):
+        return u_from_paraformer(model, state)
     new = sorted({int(k.split(".")[1]) for k in own if k.startswith("layers.")}
                  - {int(k.split(".")[1]) for k in state if k.startswith("layers.")})
     if model.config["model"] != "paraformer" or not new:
@@ -148,6 +161,38 @@ def load_init(model: Matcher, state: dict) -> list[int]:
             last.weight.zero_()
             last.bias.zero_()
     return new
+
+
+def u_from_paraformer(model: Matcher, state: dict, outer: tuple[int, int] = (0, -1)) -> list[str]:
+    """Warm-starts a ParaFormer-U from a ParaFormer of its outer width: the encoder, head and
+    dustbin are copied, its first and last stage (one layer each) take the ParaFormer's
+    layers ``outer`` (default its first and last: the head was trained on the last layer's
+    output; the first two instead left a validation loss of 13 against 3.6), and the unpooling back to the outer width starts at zero, so that the
+    inner stages are silent and the U computes those two layers of the ParaFormer. The inner
+    stages and poolings start fresh and learn from there. Returns the fresh modules."""
+    depths = model.config["stage_depths"]
+    if depths[0] != 1 or depths[4] != 1:
+        raise SystemExit(f"error: --init ParaFormer into a U needs outer stages of one layer, not {depths}")
+    n = 1 + max(int(k.split(".")[1]) for k in state if k.startswith("layers."))
+    outer = tuple(i % n for i in outer)
+    mapped = {}
+    for key, value in state.items():
+        if not key.startswith("layers."):
+            mapped[key] = value
+            continue
+        layer, rest = key.split(".", 2)[1:]
+        for stage, src in ((0, outer[0]), (4, outer[1])):
+            if int(layer) == src:
+                mapped[f"stages.{stage}.layers.0.{rest}"] = value
+    missing, unexpected = model.load_state_dict(mapped, strict=False)
+    fresh = sorted({".".join(k.split(".")[:2]) for k in missing})
+    stray = [k for k in missing if not k.startswith(("stages.1.", "stages.2.", "stages.3.", "pools.", "unpools."))]
+    if stray or unexpected:
+        raise SystemExit(f"error: --init does not fit the U's outer stages: missing {stray}, unexpected {unexpected}")
+    with torch.no_grad():
+        model.unpools[-1].proj.weight.zero_()
+        model.unpools[-1].proj.bias.zero_()
+    return fresh
 
 
 class LayerHeads(nn.Module):
@@ -337,6 +382,11 @@ def main() -> None:
                          "(paraformer attention_forward/backward_bf16, AVX-512 BF16 CPUs): 1.35-1.4x the "
                          "step of --bf16 alone at the same gradient accuracy (bench_step.py, "
                          "bench_attention.py); a run may switch it on or off at a resume")
+    ap.add_argument("--stage-dims", type=int, nargs=5, default=None, metavar="C",
+                    help="ParaFormer-U: the five stage widths (default dim x 256,384,128,384,256 / 256); "
+                         "the first and last must equal --dim")
+    ap.add_argument("--pooling", choices=["attentional", "gpool", "random"], default=None,
+                    help="ParaFormer-U: the pooling (SPEC §7; default attentional)")
     ap.add_argument("--unshare", nargs="*", choices=SHARING, default=[],
                     help="ParaFormer(-U): sharing switches to turn off (separate self/cross q/k/v, merges, "
                          "or cross-attention weights); more parameters at little CPU cost")
@@ -470,7 +520,7 @@ def main() -> None:
         ema.load_state_dict(model.state_dict())
         if heads is not None:
             heads.copy_from(model)
-        print(f"initialised from {args.init}" + (f", new identity layers {grown}" if grown else ""), flush=True)
+        print(f"initialised from {args.init}" + (f", new (identity or silent) parts {grown}" if grown else ""), flush=True)
     holdout = ensure_holdout(args.val_pairs)
     if args.validate_only:
         v = validate(ema, holdout, 512, args.val_threshold, auc=False)

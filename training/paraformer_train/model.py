@@ -127,6 +127,7 @@ FUSED_ATTENTION = True  # False: explicit softmax everywhere (the slower pre-SDP
 # True (train.py --native-attention): bf16 fused attention in training runs in the project's
 # engine (NativeAttention) instead of PyTorch's CPU flash kernels.
 NATIVE_ATTENTION = False
+NATIVE_HEAD_WIDTHS = (16, 32, 64)  # the engine's kernels; other widths take PyTorch's SDPA
 
 
 def _bf16_bytes(t: torch.Tensor) -> bytes:
@@ -172,7 +173,8 @@ def attention(q, k, v, need_prob: bool = True):
     """Softmax attention; without ``need_prob`` it runs as one fused
     ``scaled_dot_product_attention`` (same value, far less memory traffic in training)."""
     if not need_prob and FUSED_ATTENTION:
-        if NATIVE_ATTENTION and q.dtype == torch.bfloat16 and torch.is_grad_enabled():
+        if (NATIVE_ATTENTION and q.dtype == torch.bfloat16 and torch.is_grad_enabled()
+                and q.shape[-1] in NATIVE_HEAD_WIDTHS):
             return merge_heads(NativeAttention.apply(q, k, v)), None
         return merge_heads(F.scaled_dot_product_attention(q, k, v)), None
     prob = scaled_scores(q, k).softmax(-1)
