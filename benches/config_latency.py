@@ -9,11 +9,15 @@ the ratio to LighterGlue is what the issue's latency budget reads (at most 0.5).
     python benches/config_latency.py --threads 2 --json benches/results/config_latency_2threads.json
     python benches/config_latency.py --config h2=64,2,4 --config unshared=64,2,4,qkv,merge
 
-A config is NAME=[u:]DIM,HEADS,DEPTH[,SWITCH...], SWITCH one of ``train.py --unshare``'s
-(qkv, merge, attention_weights: turned off); ``u:`` makes it the ParaFormer-U of outer width
-DIM that ``train.py --preset paraformer_u`` trains (its stage depths are fixed, DEPTH is not
-read), e.g. ``--config w96=96,3,4 --config u96=u:96,3,4``; Sinkhorn runs the shipped model's iterations unless --sinkhorn says. Latency does not depend on the
-weights' values (the engine has no data-dependent paths besides the match count).
+A config is NAME=[u:]DIM,HEADS,DEPTH[,OPTION...], OPTION one of ``train.py --unshare``'s
+switches (qkv, merge, attention_weights: turned off). ``u:`` makes it the ParaFormer-U of
+outer width DIM that ``train.py --preset paraformer_u`` trains (its stage depths are fixed,
+DEPTH is not read), whose OPTIONs may also be a pooling (attentional, gpool, random: its
+``--pooling``) and ``dims=C0/C1/C2/C3/C4`` (its ``--stage-dims``), e.g. ``--config
+w96=96,3,4 --config u96=u:96,3,4 --config u96g=u:96,3,4,gpool,dims=96/96/48/96/96``.
+Sinkhorn runs the shipped model's iterations unless --sinkhorn says. Latency does not
+depend on the weights' values (the engine has no data-dependent paths besides the match
+count).
 """
 from __future__ import annotations
 
@@ -31,13 +35,13 @@ DEFAULT_CONFIGS = ["h2=64,2,4", "unshared=64,2,4,qkv,merge", "depth6=64,2,6", "d
 
 
 def parse_config(text: str) -> tuple[str, dict]:
-    """``NAME=[u:]DIM,HEADS,DEPTH[,SWITCH...]`` → (name, the model config ``train.py`` would train)."""
+    """``NAME=[u:]DIM,HEADS,DEPTH[,OPTION...]`` → (name, the model config ``train.py`` would train)."""
     name, sep, spec = text.partition("=")
     u = spec.startswith("u:")
     spec = spec.removeprefix("u:")
     fields = spec.split(",")
     if not sep or not name or len(fields) < 3:
-        raise SystemExit(f"error: --config {text!r}: expected NAME=[u:]DIM,HEADS,DEPTH[,SWITCH...]")
+        raise SystemExit(f"error: --config {text!r}: expected NAME=[u:]DIM,HEADS,DEPTH[,OPTION...]")
     try:
         dim, heads, depth = (int(v) for v in fields[:3])
     except ValueError:
@@ -46,9 +50,20 @@ def parse_config(text: str) -> tuple[str, dict]:
         raise SystemExit(f"error: --config {text!r}: DIM must be a multiple of HEADS")
     from train import model_config  # training/train.py: the config a run trains (imports torch)
 
+    options = {"unshare": [], "pooling": None, "stage_dims": None}
+    for opt in fields[3:]:
+        if opt in ("attentional", "gpool", "random"):
+            options["pooling"] = opt
+        elif opt.startswith("dims="):
+            try:
+                options["stage_dims"] = [int(v) for v in opt.removeprefix("dims=").split("/")]
+            except ValueError:
+                raise SystemExit(f"error: --config {text!r}: {opt!r}: expected dims=C0/C1/C2/C3/C4 of integers") from None
+        else:
+            options["unshare"].append(opt)
     try:
         cfg = model_config({"preset": "paraformer_u" if u else "paraformer", "dim": dim, "heads": heads,
-                            "depth": depth, "sinkhorn": 0, "unshare": fields[3:]})
+                            "depth": depth, "sinkhorn": 0} | options)
     except ValueError as e:
         raise SystemExit(f"error: --config {text!r}: {e}") from None
     widths = cfg.get("stage_dims", [dim]) if u else [dim]

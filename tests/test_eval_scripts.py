@@ -184,8 +184,12 @@ def test_config_latency_parses_paraformer_and_u_configs():
         assert cfg["parallel"]["share_qkv"] is False
         name, cfg = mod.parse_config("u96=u:96,3,4")
         assert cfg["model"] == "paraformer_u" and cfg["stage_dims"] == [96, 144, 48, 144, 96]
+        _, cfg = mod.parse_config("u96g=u:96,3,4,gpool,dims=96/96/48/96/96,merge")
+        assert (cfg["pooling"], cfg["stage_dims"], cfg["parallel"]["share_merge"]) == ("gpool", [96, 96, 48, 96, 96], False)
         for spec, needle in (("u=u:32,32,4", "stage widths [32, 48, 16, 48, 32]"), ("x=96,5,4", "multiple of HEADS"),
-                             ("x=96,3", "expected NAME="), ("x=u:a,3,4", "must be integers")):
+                             ("x=96,3", "expected NAME="), ("x=u:a,3,4", "must be integers"),
+                             ("x=u:96,3,4,dims=96/x", "dims=C0/C1/C2/C3/C4"), ("x=96,3,4,gpool", "ParaFormer-U's"),
+                             ("x=u:96,3,4,dims=96/96/96", "five widths"), ("x=96,3,4,sideways", "unknown sharing")):
             with pytest.raises(SystemExit, match=re.escape(needle)):
                 mod.parse_config(spec)
     finally:
