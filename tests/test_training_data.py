@@ -356,8 +356,8 @@ def test_grown_model_computes_what_its_init_did():
 
 def test_u_warm_started_from_a_paraformer_computes_its_outer_layers():
     """`--init` of a ParaFormer checkpoint into a ParaFormer-U run: the U's outer stages take
-    the first and last layer, the unpooling back to the outer width starts at zero, so the U
-    scores as the two-layer ParaFormer of those layers; the inner stages are fresh."""
+    layers 0 and 2, the unpooling back to the outer width starts at zero, so the U scores as
+    the two-layer ParaFormer of those layers; the inner stages are fresh."""
     from train import load_init, model_config
     from paraformer_train.model import Matcher
 
@@ -367,9 +367,9 @@ def test_u_warm_started_from_a_paraformer_computes_its_outer_layers():
     u = Matcher(model_config(args | {"preset": "paraformer_u"})).eval()
     fresh = load_init(u, parent.state_dict())
     assert fresh == ["pools.0", "pools.1", "stages.1", "stages.2", "stages.3", "unpools.0", "unpools.1"]
-    outer = {k: v for k, v in parent.state_dict().items() if not k.startswith(("layers.1.", "layers.2."))}
+    outer = {k: v for k, v in parent.state_dict().items() if not k.startswith(("layers.1.", "layers.3."))}
     two = Matcher(model_config(args | {"preset": "paraformer", "depth": 2})).eval()
-    two.load_state_dict({k.replace("layers.3.", "layers.1."): v for k, v in outer.items()})
+    two.load_state_dict({k.replace("layers.2.", "layers.1."): v for k, v in outer.items()})
     data = _random_pair()
     with torch.no_grad():
         assert torch.allclose(u.scores(data), two.scores(data), atol=1e-5)

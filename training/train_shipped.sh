@@ -15,8 +15,8 @@ case "$name" in
   # The next paraformer-xfeat (exported under that name once it wins): width 96, 3 heads of
   # width 32, from scratch; compare_capacity.sh showed it ahead of width 64 at equal pairs.
   paraformer-xfeat-w96) model=(--preset paraformer --dim 96 --heads 3 --depth 4); pairs=300000 ;;
-  # Its U-Net sibling, started with --init from the w96 line: the outer stages take its first
-  # and last layer (train.py u_from_paraformer). Widths 96, 96, 48, 96, 96 and gPool, not the
+  # Its U-Net sibling, started with --init from the w96 line: the outer stages take its
+  # layers 0 and 2 (train.py u_from_paraformer). Widths 96, 96, 48, 96, 96 and gPool, not the
   # paper's scaled 96, 144, 48, 144, 96 and attentional pooling: in the engine at 2048
   # keypoints (bf16, random weights, one alternated run) they cost 74.6 ms against 82.0 and
   # 94.9, the w96 ParaFormer 90.4 (training/README "ParaFormer-U at width 96").
