@@ -194,3 +194,16 @@ def test_config_latency_parses_paraformer_and_u_configs():
                 mod.parse_config(spec)
     finally:
         sys.path.remove(str(ROOT / "training"))
+
+
+def test_plot_curves_run_offsets():
+    """plot_curves.py: ``RUN=PAIRS`` shifts a run that started from --init weights; a bad
+    offset is named."""
+    import pytest
+
+    mod = load(ROOT / "training" / "plot_curves.py", "plot_curves")
+    assert mod.parse_run("training/checkpoints/a") == ("training/checkpoints/a", 0)
+    assert mod.parse_run("runs/x=y/b=301000") == ("runs/x=y/b", 301000)
+    for bad in ("runs/b=3k", "runs/b=-5", "=12"):
+        with pytest.raises(SystemExit, match="RUN=PAIRS"):
+            mod.parse_run(bad)

@@ -5,6 +5,9 @@ the last validation of each run.
     python training/plot_curves.py training/checkpoints/paraformer-xfeat --out training/curves.png
     python training/plot_curves.py training/runs/compare/* --out training/results/config_comparison.png \
         --summary training/results/config_comparison.json
+
+A run given as ``RUN=PAIRS`` is drawn shifted by PAIRS: a run started with ``train.py
+--init`` from a checkpoint at PAIRS pairs counts its own pairs from 0.
 """
 from __future__ import annotations
 
@@ -20,9 +23,23 @@ def read_log(run: str) -> list[dict]:
     return [json.loads(line) for line in open(path) if line.strip()]
 
 
+def parse_run(text: str) -> tuple[str, int]:
+    """``RUN`` or ``RUN=PAIRS`` → (folder, pairs offset)."""
+    run, sep, offset = text.rpartition("=")
+    if not sep:
+        return text, 0
+    try:
+        pairs = int(offset)
+    except ValueError:
+        raise SystemExit(f"error: {text!r}: expected RUN or RUN=PAIRS, PAIRS a whole number of pairs") from None
+    if pairs < 0 or not run:
+        raise SystemExit(f"error: {text!r}: expected RUN or RUN=PAIRS, PAIRS a whole number of pairs")
+    return run, pairs
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("runs", nargs="+")
+    ap.add_argument("runs", nargs="+", help="run folders (log.jsonl), each RUN or RUN=PAIRS (drawn from PAIRS on)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--summary", default=None)
     args = ap.parse_args()
@@ -35,14 +52,14 @@ def main() -> None:
               ("f1@2048", "F1 @2048"), ("auc5px@2048", "H AUC@5px @2048"), ("precision@2048", "precision @2048")]
     fig, axes = plt.subplots(2, 3, figsize=(13, 7))
     summary = {}
-    for run in args.runs:
+    for run, offset in (parse_run(r) for r in args.runs):
         log = read_log(run)
         if not log:
             continue
         name = os.path.basename(os.path.normpath(run))
         cfg = json.load(open(os.path.join(run, "config.json"))) if os.path.exists(os.path.join(run, "config.json")) else {}
         summary[name] = {"last": log[-1], "args": cfg.get("args", {})}
-        x = [r["pairs"] for r in log]
+        x = [r["pairs"] + offset for r in log]
         for ax, (key, title) in zip(axes.ravel(), panels):
             ys = [r.get(key) for r in log]
             ax.plot(x, ys, marker="o", ms=3, label=name)
