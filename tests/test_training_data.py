@@ -398,6 +398,26 @@ def test_u_stage_widths_and_pooling_arguments():
             model_config(args | extra)
 
 
+def test_lr_scale_groups_split_the_grown_layers():
+    """`--lr-scale-from 4 10`: layers 4 onwards in their own optimiser group at 10x the rate,
+    every parameter in exactly one group; a layer outside the model or a bad scale is named."""
+    from train import lr_scale_groups, model_config
+    from paraformer_train.model import Matcher
+
+    model = Matcher(model_config({"preset": "paraformer", "dim": 32, "heads": 2, "depth": 6, "sinkhorn": 20}))
+    params = list(model.parameters())
+    slow, fast = lr_scale_groups(model, params, 4, 10)
+    assert (slow["lr_scale"], fast["lr_scale"]) == (1.0, 10.0)
+    assert len(slow["params"]) + len(fast["params"]) == len(params)
+    assert {id(p) for p in fast["params"]} == {id(p) for p in list(model.layers[4].parameters()) + list(model.layers[5].parameters())}
+    for first, scale in ((6, 10), (0, 10), (4.5, 10), (4, 0)):
+        with pytest.raises(ValueError, match="expected LAYER"):
+            lr_scale_groups(model, params, first, scale)
+    u = Matcher(model_config({"preset": "paraformer_u", "dim": 32, "heads": 2, "depth": 4, "sinkhorn": 20}))
+    with pytest.raises(ValueError, match="needs a ParaFormer"):
+        lr_scale_groups(u, list(u.parameters()), 1, 10)
+
+
 def test_layer_loss_ends_with_the_models_own_loss():
     """`--layer-loss`: one loss per layer from `layer_states`, the last equal to the plain
     loss of `scores`; the training-only heads start as copies of the model's head."""

@@ -41,8 +41,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare", "stage_dims", "pooling")
 # A resume refuses a change of these (the model's, and --layer-loss, whose heads are in the
 # optimiser's state); runs saved before an argument existed trained with its default here.
-RESUME_ARGS = MODEL_ARGS + ("layer_loss",)
-RESUME_DEFAULTS = {"unshare": [], "layer_loss": False, "stage_dims": None, "pooling": None}
+RESUME_ARGS = MODEL_ARGS + ("layer_loss", "lr_scale_from")
+RESUME_DEFAULTS = {"unshare": [], "layer_loss": False, "stage_dims": None, "pooling": None, "lr_scale_from": None}
 SHARING = ("qkv", "merge", "attention_weights")
 
 
@@ -195,6 +195,19 @@ def u_from_paraformer(model: Matcher, state: dict, outer: tuple[int, int] = (0, 
         model.unpools[-1].proj.weight.zero_()
         model.unpools[-1].proj.bias.zero_()
     return fresh
+
+
+def lr_scale_groups(model: Matcher, params: list, first: float, scale: float) -> list[dict]:
+    """Optimiser groups in which ParaFormer layers ``first`` onwards learn at ``scale`` × the
+    rate: layers grown as identity by ``--init`` start at zero and, under Adam's steps of about
+    the rate, would take far longer than the trained layers around them to matter."""
+    if not hasattr(model, "layers"):
+        raise ValueError("needs a ParaFormer (preset paraformer)")
+    if not float(first).is_integer() or not 0 < first < len(model.layers) or not scale > 0:
+        raise ValueError(f"expected LAYER a whole number in 1..{len(model.layers) - 1} and SCALE > 0, got {first:g} {scale:g}")
+    fast = {id(p) for layer in model.layers[int(first):] for p in layer.parameters()}
+    return [{"params": [p for p in params if id(p) not in fast], "lr_scale": 1.0},
+            {"params": [p for p in params if id(p) in fast], "lr_scale": float(scale)}]
 
 
 class LayerHeads(nn.Module):
@@ -405,6 +418,8 @@ def main() -> None:
     ap.add_argument("--keypoints", default="512x8:0.55,1024x4:0.3,2048x2:0.15",
                     help="per-step keypoints x batch : probability")
     ap.add_argument("--lr", type=float, default=5e-4)
+    ap.add_argument("--lr-scale-from", type=float, nargs=2, default=None, metavar=("LAYER", "SCALE"),
+                    help="ParaFormer layers LAYER onwards learn at SCALE x --lr (e.g. layers grown by --init)")
     ap.add_argument("--warmup", type=int, default=4000, help="warm-up pairs")
     ap.add_argument("--weight-decay", type=float, default=0.01)
     ap.add_argument("--ema", type=float, default=0.999,
@@ -503,7 +518,13 @@ def main() -> None:
         sys.exit("error: --layer-loss needs --preset paraformer")
     heads = LayerHeads(model) if args.layer_loss else None
     params = list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
-    opt = torch.optim.AdamW(params, lr=args.lr, weight_decay=args.weight_decay)
+    groups = [{"params": params, "lr_scale": 1.0}]
+    if args.lr_scale_from is not None:
+        try:
+            groups = lr_scale_groups(model, params, *args.lr_scale_from)
+        except ValueError as e:
+            sys.exit(f"error: --lr-scale-from: {e}")
+    opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=args.weight_decay)
     pairs_seen, steps, cursor, spent, best = 0, 0, 0, 0.0, -1.0
     rng = np.random.default_rng([args.seed, 7])
     if state is not None:
@@ -580,7 +601,7 @@ def main() -> None:
             bt = stream.collate(items, k, list(rng.random(bsz) < 0.5), real_unmatched_from=args.real_unmatched_from,
                                     synthetic_positive_px=args.synthetic_positive_px)
             for g_ in opt.param_groups:
-                g_["lr"] = lr_at(pairs_seen, args.pairs, args.warmup, args.lr, decay_from)
+                g_["lr"] = g_.get("lr_scale", 1.0) * lr_at(pairs_seen, args.pairs, args.warmup, args.lr, decay_from)
             losses = matching_losses(model, heads, bt, sinkhorn, args.sinkhorn, args.bf16)
             loss = sum(losses) / len(losses)
             opt.zero_grad(set_to_none=True)
