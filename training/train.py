@@ -72,9 +72,10 @@ def model_config(args: dict) -> dict:
     if dims:
         if len(dims) != 5 or dims[0] != args["dim"] or dims[4] != args["dim"]:
             raise ValueError(f"stage_dims {dims}: expected five widths that begin and end with dim {args['dim']}")
-        if any(d % args["heads"] for d in dims):
-            raise ValueError(f"stage_dims {dims}: every width must be a multiple of heads {args['heads']}")
         cfg["stage_dims"] = list(dims)
+    # The preset's scaled widths as well as given ones: each stage splits into the heads.
+    if any(d % args["heads"] for d in cfg.get("stage_dims", [])):
+        raise ValueError(f"stage widths {cfg['stage_dims']}: every width must be a multiple of heads {args['heads']}")
     if pooling:
         cfg["pooling"] = pooling
     unshare = args.get("unshare") or []
