@@ -208,3 +208,17 @@ def test_plot_curves_run_offsets():
     for bad in ("runs/b=3k", "runs/b=-5", "=12"):
         with pytest.raises(SystemExit, match="RUN=PAIRS"):
             mod.parse_run(bad)
+
+
+def test_malloc_reuse_probe_counts_faults_and_names_bad_sizes():
+    import os
+    import subprocess
+    probe = ROOT / "scripts" / "malloc_reuse_probe.py"
+    env = dict(os.environ, MALLOC_TOP_PAD_=str(64 << 20), MALLOC_TRIM_THRESHOLD_=str(4 << 30))
+    out = subprocess.run([sys.executable, str(probe), "8", "--repeat", "2"], env=env,
+                         capture_output=True, text=True, check=True).stdout
+    faults = [int(x) for x in re.search(r"8 MiB: minor faults per touch \[(.*)\]", out).group(1).split(",")]
+    # A top pad above the block keeps it in the heap: the second touch faults nothing.
+    assert len(faults) == 2 and faults[1] == 0
+    bad = subprocess.run([sys.executable, str(probe), "0"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "block size must be positive MiB, got 0" in bad.stderr

@@ -146,8 +146,10 @@ def main() -> None:
         print(f"{name:55s} {r['s_per_step']:.3f} s/step  {r['pairs_per_s']:.1f} pairs/s  {r['speedup']:.2f}x")
     if args.json:
         with open(args.json, "w") as f:
-            # The thread pools' spin settings change the native row (train_shipped.sh sets GOMP_SPINCOUNT).
-            env = {k: os.environ.get(k) for k in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY", "RAYON_NUM_THREADS")}
+            # The thread pools' spin settings and glibc's heap settings change the native row
+            # (train_shipped.sh sets GOMP_SPINCOUNT and the MALLOC_* variables).
+            env = {k: os.environ.get(k) for k in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY", "RAYON_NUM_THREADS",
+                                                  "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_")}
             json.dump({"args": vars(args), "env": env, "config": cfg, "results": res, "gradient_cosine": agreement}, f, indent=1)
 
 
