@@ -17,7 +17,8 @@ case "$name" in
   paraformer-xfeat-w96) model=(--preset paraformer --dim 96 --heads 3 --depth 4); pairs=300000 ;;
   # The w96 line grown to 6 layers (--init of its 4-layer weights: layers 4 and 5 start as
   # identity). The engine's speed-ups since the 4-layer choice put 6 layers at 0.39 of
-  # LighterGlue's latency in bf16 (training/README "Six layers").
+  # LighterGlue's latency in bf16 (training/README "Six layers"). Without --init it trains from
+  # scratch (checkpoints/paraformer-xfeat-w96-d6-scratch, README "Six layers from scratch").
   paraformer-xfeat-w96-d6) model=(--preset paraformer --dim 96 --heads 3 --depth 6); pairs=600000 ;;
   # Its U-Net sibling, started with --init from the w96 line: the outer stages take its
   # layers 0 and 2 (train.py u_from_paraformer). Widths 96, 96, 48, 96, 96 and gPool, not the
