@@ -775,3 +775,118 @@ def test_native_attention_flag_needs_bf16(tmp_path):
     out = subprocess.run([sys.executable, str(ROOT / "training" / "train.py"), "--run", str(tmp_path / "r"),
                           "--native-attention", "--pairs", "10"], capture_output=True, text=True)
     assert out.returncode != 0 and "--native-attention" in out.stderr and "--bf16" in out.stderr, out.stderr
+
+
+class _StillScene:
+    """Two frames of one textured wall 2 m away, seen from the same pose: every real-pair
+    correspondence is the identity until the views are warped."""
+
+    def __init__(self):
+        import cv2
+
+        rng = np.random.default_rng(5)
+        noise = rng.integers(0, 256, (60, 80)).astype(np.uint8)
+        self.img = cv2.resize(noise, (320, 240), interpolation=cv2.INTER_CUBIC)
+        self.K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+        self.poses = np.stack([np.eye(4), np.eye(4)])
+
+    def gray(self, i):
+        return self.img
+
+    def depth(self, i):
+        return np.full((240, 320), 2.0, np.float32)
+
+
+def test_warped_projection_composes_the_view_homographies():
+    """Depth and poses of a still scene give the identity, so the warped views' projection is
+    H_b · H_a⁻¹; occluded and unknown codes pass through the warp unchanged."""
+    scene = _StillScene()
+    rng = np.random.default_rng(3)
+    ha = data.sample_patch((320, 240), (320, 240), 0.5, rng)
+    hb = data.sample_patch((320, 240), (320, 240), 0.5, rng)
+    pts = np.array([[40.0, 30.0], [160.0, 120.0], [300.0, 200.0]], np.float32)
+    args = (scene.depth(0), scene.depth(1), scene.K, scene.poses[0], scene.poses[1])
+    proj = stream._warped_projection(pts, ha, hb, *args)
+    np.testing.assert_allclose(proj, data.apply_h(hb @ np.linalg.inv(ha), pts), atol=1e-3)
+    np.testing.assert_array_equal(stream._warped_projection(pts, None, None, *args), rgbd.project(pts, *args))
+    depth_b = scene.depth(1).copy()
+    depth_b[:] = 1.0  # a surface in front of everything: all occluded
+    occluded = stream._warped_projection(pts, ha, hb, scene.depth(0), depth_b, *args[2:])
+    assert (occluded[:, 0] == rgbd.OCCLUDED).all()
+    depth_a = scene.depth(0).copy()
+    depth_a[:] = 0.0  # no depth: all unknown
+    assert np.isnan(stream._warped_projection(pts, ha, hb, depth_a, *args[1:])).all()
+
+
+def test_real_warp_is_opt_in_and_its_ground_truth_matches_the_same_texture():
+    """At real_warp 0 a real pair is its frames unwarped (projections by depth alone: the
+    identity here). At 1 both views are warped patches, and the keypoints its ground truth
+    pairs carry the same texture (often each other's nearest XFeat descriptor: a wrong warp
+    direction leaves almost none)."""
+    from paraformer_train.labels import ground_truth as gt_fn
+
+    scene = _StillScene()
+    plain = stream.PairSource([], [(scene, [(0, 1, 0.5)])], seed=2, real_fraction=1.0)
+    rec = plain.pair(0)
+    kp0 = rec["f"][0]["keypoints"]
+    known = np.isfinite(rec["proj"][0]).all(1)
+    np.testing.assert_allclose(rec["proj"][0][known], kp0[known], atol=1e-3)
+    warped = stream.PairSource([], [(scene, [(0, 1, 0.5)])], seed=2, real_fraction=1.0, real_warp=1.0)
+    agree = []
+    for index in range(4):
+        rec = warped.pair(index)
+        (f0, f1), (p0, p1) = rec["f"], rec["proj"]
+        assert not np.allclose(p0[np.isfinite(p0).all(1)], f0["keypoints"][np.isfinite(p0).all(1)], atol=1.0)
+        gt0, _ = gt_fn(*(torch.from_numpy(np.ascontiguousarray(x, np.float32))[None]
+                         for x in (f0["keypoints"], f1["keypoints"], p0, p1)), 3.0)
+        gt0 = gt0[0].numpy()
+        d0, d1 = f0["descriptors"], f1["descriptors"]
+        d0 = d0 / np.linalg.norm(d0, axis=1, keepdims=True)
+        d1 = d1 / np.linalg.norm(d1, axis=1, keepdims=True)
+        m = np.flatnonzero(gt0 >= 0)
+        assert len(m) > 20
+        agree.extend((d0[m] @ d1.T).argmax(1) == gt0[m])
+    assert np.mean(agree) > 0.3, np.mean(agree)  # 0.46 here; 0.008 with the warps swapped
+
+
+def test_generator_names_a_bad_real_warp(tmp_path):
+    import subprocess
+    r = subprocess.run([sys.executable, str(ROOT / "training" / "generate_pairs.py"),
+                        "--pool", str(tmp_path / "pool"), "--real-warp", "-0.5", "--shards", "1"],
+                       capture_output=True, text=True)
+    assert r.returncode != 0 and "--real-warp" in r.stderr and "-0.5" in r.stderr
+
+
+def test_validation_reports_each_kind_and_their_pair_weighted_whole(tmp_path):
+    """validate() splits loss and F1 into the synthetic and the real holdout pairs (where
+    memorised RGB-D pairs would show); the whole is their pair-weighted mean."""
+    from train import model_config, validate
+    from paraformer_train.model import Matcher
+
+    rng = np.random.default_rng(1)
+
+    def feats(n):
+        d = rng.normal(size=(n, 64)).astype(np.float32)
+        return {"keypoints": rng.uniform(0, 300, (n, 2)).astype(np.float32),
+                "scores": np.sort(rng.uniform(0, 1, n)).astype(np.float32)[::-1].copy(),
+                "descriptors": d / np.linalg.norm(d, axis=1, keepdims=True),
+                "image_size": np.array([320, 240], np.float32)}
+
+    pairs = []
+    for kind in (0, 1, 1):
+        f0, f1 = feats(30), feats(30)
+        h = np.eye(3) if kind == 0 else np.full((3, 3), np.nan)
+        pairs.append({"f": (f0, f1), "proj": (f1["keypoints"][::-1].copy(), f0["keypoints"][::-1].copy()),
+                      "kind": kind, "H": h})
+    path = stream.shard_path(str(tmp_path), 0)
+    stream.write_shard(path, pairs)
+    torch.manual_seed(0)
+    model = Matcher(model_config({"preset": "paraformer", "dim": 32, "heads": 2, "depth": 1, "sinkhorn": 10}))
+    v = validate(model, [stream.Shard(path)], 30, 0.2, auc=False)
+    assert v["val_loss@30"] == pytest.approx((v["val_loss_synthetic@30"] + 2 * v["val_loss_real@30"]) / 3)
+    assert v["val_loss_synthetic@30"] != v["val_loss_real@30"]
+    for k in ("f1", "precision", "recall"):
+        assert 0 <= v[f"{k}_real@30"] <= 1 and 0 <= v[f"{k}_synthetic@30"] <= 1
+    # A holdout without real pairs has no real columns (not zeros).
+    stream.write_shard(path, pairs[:1])
+    assert "val_loss_real@30" not in validate(model, [stream.Shard(path)], 30, 0.2, auc=False)

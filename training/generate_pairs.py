@@ -48,18 +48,24 @@ def main() -> None:
     ap.add_argument("--real-fraction", type=float, default=0.2)
     ap.add_argument("--heavy-noise", type=float, default=0.0,
                     help="probability per view of Gaussian noise of sigma 15-80 instead of 2-12 (default 0: the stream unchanged)")
+    ap.add_argument("--real-warp", type=float, default=0.0,
+                    help="probability per view of a real pair that the view is a rotated, scaled, perspective patch "
+                         "of its frame (default 0: the stream unchanged)")
     ap.add_argument("--cache", default=RGBD_CACHE)
     ap.add_argument("--parent", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args()
     if not 0.0 <= args.heavy_noise <= 1.0:
         sys.exit(f"error: --heavy-noise is a probability in [0, 1], got {args.heavy_noise}")
+    if not 0.0 <= args.real_warp <= 1.0:
+        sys.exit(f"error: --real-warp is a probability in [0, 1], got {args.real_warp}")
     for p in args.photos:
         if os.sep + "val" + os.sep in os.path.abspath(p) + os.sep:
             sys.exit("error: training photos must not come from val/")
     os.makedirs(args.pool, exist_ok=True)
-    src = pair_source(args.seed, args.real_fraction, args.heavy_noise, args.photos, args.rgbd, args.rgbd_split, args.cache)
+    src = pair_source(args.seed, args.real_fraction, args.heavy_noise, args.photos, args.rgbd, args.rgbd_split, args.cache,
+                      args.real_warp)
     print(f"generator: {len(src.photos)} photos, RGB-D pairs {[len(p) for _, p in src.sequences]}, "
-          f"real fraction {src.real_fraction}, heavy noise {src.heavy_noise}, from shard {args.start}", flush=True)
+          f"real fraction {src.real_fraction}, heavy noise {src.heavy_noise}, real warp {src.real_warp}, from shard {args.start}", flush=True)
     index = args.start
     t0, made = time.time(), 0
     while args.shards is None or index < args.start + args.shards:
@@ -82,7 +88,8 @@ def main() -> None:
 
 
 def pair_source(seed: int, real_fraction: float, heavy_noise: float = 0.0, photos: list[str] | None = None,
-                rgbd_dirs: list[str] | None = None, split: str = "train", cache: str | None = None) -> stream.PairSource:
+                rgbd_dirs: list[str] | None = None, split: str = "train", cache: str | None = None,
+                real_warp: float = 0.0) -> stream.PairSource:
     """The stream's pair maker (defaults: the training photos and RGB-D sequences)."""
     import cv2
 
@@ -90,7 +97,8 @@ def pair_source(seed: int, real_fraction: float, heavy_noise: float = 0.0, photo
     photos = TRAIN_PHOTOS if photos is None else photos
     rgbd_dirs = train_rgbd() if rgbd_dirs is None else rgbd_dirs
     seqs = rgbd.split_pairs([r for r in rgbd_dirs if os.path.isdir(r)], split, cache or RGBD_CACHE)
-    return stream.PairSource(data.list_photos(photos), seqs, seed, real_fraction, heavy_noise=heavy_noise)
+    return stream.PairSource(data.list_photos(photos), seqs, seed, real_fraction, heavy_noise=heavy_noise,
+                             real_warp=real_warp)
 
 
 def write_shard(src: stream.PairSource, pool: str, index: int, shard_size: int) -> list[dict]:

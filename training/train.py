@@ -318,25 +318,28 @@ def parse_schedule(text: str) -> list[tuple[int, int, float]]:
 
 @torch.no_grad()
 def validate(model: Matcher, shards: list[stream.Shard], keypoints: int, threshold: float, auc: bool) -> dict:
-    """Loss, P/R/F1 at ``threshold`` over the holdout pairs cut to ``keypoints``; with
-    ``auc``, homography AUC@5px (corner error, RANSAC 3 px) over the synthetic ones."""
+    """Loss, P/R/F1 at ``threshold`` over the holdout pairs cut to ``keypoints``, in all and per
+    kind (``_synthetic``, ``_real``: the real part is where repeated RGB-D pairs could be
+    memorised); with ``auc``, homography AUC@5px (corner error, RANSAC 3 px) over the synthetic ones."""
     from paraformer import geometry as g
     from paraformer_train.evalsets import corner_error
 
     model.eval()
-    tp = npred = ngt = 0
-    loss, n, errors = 0.0, 0, []
+    # Per kind (0 synthetic, 1 real): summed loss, pairs, true positives, predictions, ground truth.
+    sums = {k: [0.0, 0, 0, 0, 0] for k in (0, 1)}
+    errors = []
     for shard in shards:
         for i in range(len(shard)):
             bt = stream.collate([(shard, i)], keypoints, [False])
             # Same value as log_optimal_transport, far faster at 2048 keypoints (scaling domain).
             logp = log_optimal_transport_last_grad(model.scores(bt), model.bin_score,
                                                    model.config["sinkhorn_iterations"])
-            loss += nll_loss(logp, bt["gt0"], bt["gt1"]).item()
-            n += 1
             pred = extract_matches(logp, threshold)["matches0"]
-            a, b_, c = precision_recall(pred, bt["gt0"])
-            tp, npred, ngt = tp + a, npred + b_, ngt + c
+            s = sums[int(shard.kind[i])]
+            s[0] += nll_loss(logp, bt["gt0"], bt["gt1"]).item()
+            s[1] += 1
+            for j, v in enumerate(precision_recall(pred, bt["gt0"])):
+                s[2 + j] += v
             if auc and shard.kind[i] == 0:
                 m0 = pred[0].numpy()
                 ok = m0 >= 0
@@ -344,9 +347,14 @@ def validate(model: Matcher, shards: list[stream.Shard], keypoints: int, thresho
                 errors.append(corner_error(bt["keypoints0"][0].numpy()[ok], bt["keypoints1"][0].numpy()[m0[ok]],
                                            shard.H[i], w, h))
     model.train()
-    p, r, f1 = prf(tp, npred, ngt)
-    out = {f"val_loss@{keypoints}": loss / max(n, 1), f"precision@{keypoints}": p, f"recall@{keypoints}": r,
-           f"f1@{keypoints}": f1}
+    out = {}
+    for suffix, kinds in (("", (0, 1)), ("_synthetic", (0,)), ("_real", (1,))):
+        loss, n, tp, npred, ngt = (sum(sums[k][j] for k in kinds) for j in range(5))
+        if n == 0:
+            continue
+        p, r, f1 = prf(tp, npred, ngt)
+        out |= {f"val_loss{suffix}@{keypoints}": loss / n, f"precision{suffix}@{keypoints}": p,
+                f"recall{suffix}@{keypoints}": r, f"f1{suffix}@{keypoints}": f1}
     if auc:
         # Exact AUC of the corner-error CDF up to t px (the evaluation harness's rule).
         for t, a in zip((1, 3, 5), g.pose_auc(errors, (1, 3, 5))):
@@ -359,7 +367,7 @@ def start_generator(args, work: str, cursor: int) -> subprocess.Popen:
     cmd = [sys.executable, os.path.join(HERE, "generate_pairs.py"), "--pool", os.path.join(work, "pool"),
            "--seed", str(args.seed), "--start", str(cursor), "--shard-size", str(args.shard_size),
            "--max-pending", str(args.max_pending), "--real-fraction", str(args.real_fraction),
-           "--heavy-noise", str(args.heavy_noise),
+           "--heavy-noise", str(args.heavy_noise), "--real-warp", str(args.real_warp),
            "--parent", str(os.getpid())]
     env = dict(os.environ, RAYON_NUM_THREADS=str(args.gen_threads), OMP_NUM_THREADS="1")
     return subprocess.Popen(["nice", "-n", str(args.gen_nice)] + cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
@@ -438,6 +446,10 @@ def main() -> None:
     ap.add_argument("--heavy-noise", type=float, default=0.0,
                     help="probability per view of Gaussian noise of sigma 15-80 grey levels instead of the "
                          "recipe's 2-12 (homography/iguazu_noise reaches 78); 0 leaves the stream unchanged")
+    ap.add_argument("--real-warp", type=float, default=0.0,
+                    help="probability per view of a real (RGB-D) pair that the view is a rotated (up to 39 deg), "
+                         "scaled, perspective patch of its frame, so that the ~1,500 real frame pairs recur in "
+                         "new geometry; 0 leaves the stream unchanged")
     ap.add_argument("--synthetic-positive-px", type=float, default=None,
                     help="positive radius for synthetic pairs (default: 3 px like the evaluation; "
                          "keypoints between it and 3 px are ignored)")
@@ -469,6 +481,8 @@ def main() -> None:
         sys.exit(f"error: --decay-start {args.decay_start}: expected 0 <= it < --pairs ({args.pairs})")
     if not 0.0 <= args.heavy_noise <= 1.0:
         sys.exit(f"error: --heavy-noise is a probability in [0, 1], got {args.heavy_noise}")
+    if not 0.0 <= args.real_warp <= 1.0:
+        sys.exit(f"error: --real-warp is a probability in [0, 1], got {args.real_warp}")
     decay_from = DECAY_FROM if args.decay_start is None else args.decay_start / args.pairs
     if args.native_attention:
         if not args.bf16:
@@ -565,7 +579,7 @@ def main() -> None:
         if args.generate_inline:
             import generate_pairs
 
-            src = generate_pairs.pair_source(args.seed, args.real_fraction, args.heavy_noise)
+            src = generate_pairs.pair_source(args.seed, args.real_fraction, args.heavy_noise, real_warp=args.real_warp)
             inline = generate_pairs.InlineGenerator(src, os.path.join(work, "pool"), cursor, args.shard_size)
         else:
             gen = start_generator(args, work, cursor)

