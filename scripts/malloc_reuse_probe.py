@@ -18,13 +18,17 @@ def main() -> None:
     ap.add_argument("mib", type=int, nargs="+", help="block sizes in MiB, probed in this order")
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
+    # All sizes checked before any is probed: a bad one is named with nothing printed before it.
+    for mib in args.mib:
+        if mib <= 0:
+            ap.error(f"block size must be positive MiB, got {mib}")
+    if args.repeat < 1:
+        ap.error(f"--repeat must be at least 1, got {args.repeat}")
     libc = ctypes.CDLL(ctypes.util.find_library("c"))
     libc.malloc.restype = ctypes.c_void_p
     libc.malloc.argtypes = [ctypes.c_size_t]
     libc.free.argtypes = [ctypes.c_void_p]
     for mib in args.mib:
-        if mib <= 0:
-            ap.error(f"block size must be positive MiB, got {mib}")
         n = mib << 20
         faults = []
         for _ in range(args.repeat):

@@ -220,5 +220,8 @@ def test_malloc_reuse_probe_counts_faults_and_names_bad_sizes():
     faults = [int(x) for x in re.search(r"8 MiB: minor faults per touch \[(.*)\]", out).group(1).split(",")]
     # A top pad above the block keeps it in the heap: the second touch faults nothing.
     assert len(faults) == 2 and faults[1] == 0
-    bad = subprocess.run([sys.executable, str(probe), "0"], capture_output=True, text=True)
-    assert bad.returncode != 0 and "block size must be positive MiB, got 0" in bad.stderr
+    bad = subprocess.run([sys.executable, str(probe), "8", "0"], capture_output=True, text=True)
+    # Named before anything is probed: the good size before it prints nothing.
+    assert bad.returncode != 0 and "block size must be positive MiB, got 0" in bad.stderr and bad.stdout == ""
+    bad = subprocess.run([sys.executable, str(probe), "8", "--repeat", "0"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "--repeat must be at least 1, got 0" in bad.stderr
