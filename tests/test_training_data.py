@@ -180,14 +180,19 @@ def test_sequence_frame_cache_is_exact_read_only_and_follows_the_camera(tmp_path
     assert not np.array_equal(seq.depth(0), d)
 
 
+def _random_features(rng, n, size):
+    """``n`` random keypoints of an image of ``size`` (w, h) with falling scores and unit descriptors."""
+    d = rng.normal(size=(n, 64)).astype(np.float32)
+    return {"keypoints": rng.uniform(0, min(size), (n, 2)).astype(np.float32),
+            "scores": np.sort(rng.uniform(0, 1, n)).astype(np.float32)[::-1].copy(),
+            "descriptors": d / np.linalg.norm(d, axis=1, keepdims=True),
+            "image_size": np.array(size, np.float32)}
+
+
 def test_shard_round_trip_and_top_k_cut(tmp_path):
     rng = np.random.default_rng(0)
     def feats(n):
-        d = rng.normal(size=(n, 64)).astype(np.float32)
-        return {"keypoints": rng.uniform(0, 100, (n, 2)).astype(np.float32),
-                "scores": np.sort(rng.uniform(0, 1, n)).astype(np.float32)[::-1].copy(),
-                "descriptors": d / np.linalg.norm(d, axis=1, keepdims=True),
-                "image_size": np.array([100, 80], np.float32)}
+        return _random_features(rng, n, (100, 80))
     pairs = []
     for n0, n1 in ((30, 40), (50, 20)):
         f0, f1 = feats(n0), feats(n1)
@@ -866,11 +871,7 @@ def test_validation_reports_each_kind_and_their_pair_weighted_whole(tmp_path):
     rng = np.random.default_rng(1)
 
     def feats(n):
-        d = rng.normal(size=(n, 64)).astype(np.float32)
-        return {"keypoints": rng.uniform(0, 300, (n, 2)).astype(np.float32),
-                "scores": np.sort(rng.uniform(0, 1, n)).astype(np.float32)[::-1].copy(),
-                "descriptors": d / np.linalg.norm(d, axis=1, keepdims=True),
-                "image_size": np.array([320, 240], np.float32)}
+        return _random_features(rng, n, (320, 240))
 
     pairs = []
     for kind in (0, 1, 1):
