@@ -46,18 +46,14 @@ def main() -> None:
                     help="RGB-D sequence folders (default: all that rgbd.usable accepts)")
     ap.add_argument("--rgbd-split", choices=["train", "holdout"], default="train")
     ap.add_argument("--real-fraction", type=float, default=0.2)
-    ap.add_argument("--heavy-noise", type=float, default=0.0,
+    ap.add_argument("--heavy-noise", type=data.probability, default=0.0,
                     help="probability per view of Gaussian noise of sigma 15-80 instead of 2-12 (default 0: the stream unchanged)")
-    ap.add_argument("--real-warp", type=float, default=0.0,
+    ap.add_argument("--real-warp", type=data.probability, default=0.0,
                     help="probability per view of a real pair that the view is a rotated, scaled, perspective patch "
                          "of its frame (default 0: the stream unchanged)")
     ap.add_argument("--cache", default=RGBD_CACHE)
     ap.add_argument("--parent", type=int, default=None, help="exit when this process is gone")
     args = ap.parse_args()
-    if not 0.0 <= args.heavy_noise <= 1.0:
-        sys.exit(f"error: --heavy-noise is a probability in [0, 1], got {args.heavy_noise}")
-    if not 0.0 <= args.real_warp <= 1.0:
-        sys.exit(f"error: --real-warp is a probability in [0, 1], got {args.real_warp}")
     for p in args.photos:
         if os.sep + "val" + os.sep in os.path.abspath(p) + os.sep:
             sys.exit("error: training photos must not come from val/")

@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from paraformer_train import model as model_mod, stream  # noqa: E402
+from paraformer_train import data, model as model_mod, stream  # noqa: E402
 from paraformer_train.io import save_safetensors  # noqa: E402
 from paraformer_train.model import (Matcher, extract_matches, log_optimal_transport,  # noqa: E402
                                     log_optimal_transport_last_grad, pair_scores)
@@ -443,10 +443,10 @@ def main() -> None:
     ap.add_argument("--max-pending", type=int, default=24)
     ap.add_argument("--reuse", type=float, default=1.0, help="draws per pair before its shard is retired")
     ap.add_argument("--real-fraction", type=float, default=0.2)
-    ap.add_argument("--heavy-noise", type=float, default=0.0,
+    ap.add_argument("--heavy-noise", type=data.probability, default=0.0,
                     help="probability per view of Gaussian noise of sigma 15-80 grey levels instead of the "
                          "recipe's 2-12 (homography/iguazu_noise reaches 78); 0 leaves the stream unchanged")
-    ap.add_argument("--real-warp", type=float, default=0.0,
+    ap.add_argument("--real-warp", type=data.probability, default=0.0,
                     help="probability per view of a real (RGB-D) pair that the view is a rotated (up to 39 deg), "
                          "scaled, perspective patch of its frame, so that the ~1,500 real frame pairs recur in "
                          "new geometry; 0 leaves the stream unchanged")
@@ -479,10 +479,6 @@ def main() -> None:
     args.unshare = [k for k in SHARING if k in args.unshare]  # one spelling per set, for the resume check
     if args.decay_start is not None and not 0 <= args.decay_start < args.pairs:
         sys.exit(f"error: --decay-start {args.decay_start}: expected 0 <= it < --pairs ({args.pairs})")
-    if not 0.0 <= args.heavy_noise <= 1.0:
-        sys.exit(f"error: --heavy-noise is a probability in [0, 1], got {args.heavy_noise}")
-    if not 0.0 <= args.real_warp <= 1.0:
-        sys.exit(f"error: --real-warp is a probability in [0, 1], got {args.real_warp}")
     decay_from = DECAY_FROM if args.decay_start is None else args.decay_start / args.pairs
     if args.native_attention:
         if not args.bf16:

@@ -17,6 +17,16 @@ import numpy as np
 PHOTO_EXTS = (".jpg", ".jpeg", ".png", ".pgm", ".ppm")
 
 
+def probability(text: str) -> float:
+    """An argparse type for the stream's per-view probabilities (--heavy-noise, --real-warp)."""
+    import argparse
+
+    p = float(text)
+    if not 0.0 <= p <= 1.0:
+        raise argparse.ArgumentTypeError(f"is a probability in [0, 1], got {text}")
+    return p
+
+
 def list_photos(roots: list[str]) -> list[str]:
     files = []
     for root in roots:
