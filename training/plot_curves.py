@@ -52,7 +52,9 @@ def main() -> None:
               ("f1@2048", "F1 @2048"), ("auc5px@2048", "H AUC@5px @2048"), ("precision@2048", "precision @2048")]
     fig, axes = plt.subplots(2, 3, figsize=(13, 7))
     summary = {}
-    for run, offset in (parse_run(r) for r in args.runs):
+    # tab20 rather than the default 10-colour cycle, so that up to 20 runs keep distinct colours
+    colours = plt.get_cmap("tab20").colors
+    for index, (run, offset) in enumerate(parse_run(r) for r in args.runs):
         log = read_log(run)
         if not log:
             continue
@@ -62,7 +64,7 @@ def main() -> None:
         x = [r["pairs"] + offset for r in log]
         for ax, (key, title) in zip(axes.ravel(), panels):
             ys = [r.get(key) for r in log]
-            ax.plot(x, ys, marker="o", ms=3, label=name)
+            ax.plot(x, ys, marker="o", ms=3, label=name, color=colours[index % len(colours)])
             ax.set_title(title)
             ax.set_xlabel("training pairs seen")
             ax.grid(alpha=0.3)
