@@ -919,14 +919,10 @@ def _sample_pair_features() -> dict:
     """The sample pair's XFeat features (400 and 350 keypoints) as a batch of one, as the
     trainer's batches hold them."""
     import paraformer
+    from paraformer_train.teacher import features_batch
 
-    bt = {}
-    for i in (0, 1):
-        f = paraformer.extract(ROOT / "assets" / "sample" / f"coffee_{i}.jpg", max_keypoints=400 - 50 * i)
-        bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
-        bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
-        bt[f"image_size{i}"] = torch.tensor(np.asarray(f["image_size"], np.float32))[None]
-    return bt
+    return features_batch(*(paraformer.extract(ROOT / "assets" / "sample" / f"coffee_{i}.jpg",
+                                               max_keypoints=400 - 50 * i) for i in (0, 1)))
 
 
 def test_teacher_keeps_every_keypoint_and_agrees_with_lighterglues_matches():

@@ -14,11 +14,10 @@ import statistics
 import sys
 import time
 
-import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from paraformer_train.teacher import LighterGlueTeacher  # noqa: E402
+from paraformer_train.teacher import LighterGlueTeacher, features_batch  # noqa: E402
 
 SAMPLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "assets", "sample")
 
@@ -27,13 +26,8 @@ def sample_batch(keypoints: int, batch: int) -> dict:
     """The sample pair's XFeat features at ``keypoints`` per image, repeated ``batch`` times."""
     import paraformer
 
-    bt = {}
-    for i in (0, 1):
-        f = paraformer.extract(os.path.join(SAMPLE, f"coffee_{i}.jpg"), max_keypoints=keypoints)
-        bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None].repeat(batch, 1, 1)
-        bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None].repeat(batch, 1, 1)
-        bt[f"image_size{i}"] = torch.tensor(np.asarray(f["image_size"], np.float32))[None].repeat(batch, 1)
-    return bt
+    feats = [paraformer.extract(os.path.join(SAMPLE, f"coffee_{i}.jpg"), max_keypoints=keypoints) for i in (0, 1)]
+    return features_batch(*feats, batch=batch)
 
 
 def main() -> None:

