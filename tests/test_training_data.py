@@ -359,6 +359,54 @@ def test_grown_model_computes_what_its_init_did():
         load_init(deep, {k: v for k, v in small.state_dict().items() if k != "final_proj.bias"})
 
 
+def test_layers_grown_as_copies_start_from_the_init_last_layers():
+    """`--grow-copy SCALE`: 4 -> 6 layers, layers 4 and 5 are copies of layers 2 and 3 with
+    their last fuse Linear scaled; scale 0 computes what the init did, a small scale stays
+    close to it, and more new layers than init layers is an error."""
+    from train import load_init, model_config
+    from paraformer_train.model import Matcher
+
+    args = {"preset": "paraformer", "dim": 32, "heads": 2, "sinkhorn": 20}
+    torch.manual_seed(0)
+    small = Matcher(model_config(args | {"depth": 4})).eval()
+    data = _random_pair()
+    with torch.no_grad():
+        want = small.scores(data)
+        deltas = []
+        for scale in (0.0, 0.1, 1.0):
+            big = Matcher(model_config(args | {"depth": 6})).eval()
+            assert load_init(big, small.state_dict(), copy_scale=scale) == [4, 5]
+            for new, source in ((4, 2), (5, 3)):
+                got, ref = big.layers[new].state_dict(), small.layers[source].state_dict()
+                for key in ref:
+                    factor = scale if key.startswith("fuse.3.") else 1.0
+                    assert torch.allclose(got[key], ref[key] * factor), (new, key)
+            deltas.append(float((big.scores(data) - want).abs().max()))
+    assert deltas[0] < 1e-5 and 0 < deltas[1] < deltas[2], deltas
+    with pytest.raises(SystemExit, match="at least as many init layers"):
+        load_init(Matcher(model_config(args | {"depth": 5})), Matcher(model_config(args | {"depth": 2})).state_dict(),
+                  copy_scale=0.1)
+
+
+def test_grow_copy_misuse_is_refused_with_the_reason(tmp_path):
+    """`--grow-copy` without --init, with an init of the run's own depth, or with a scale
+    outside [0, 1] exits with a message that names the problem."""
+    import subprocess
+
+    import train
+    from paraformer_train.model import Matcher
+
+    init = tmp_path / "init.pt"
+    cfg = train.model_config(dict(preset="paraformer", dim=32, depth=2, heads=2, sinkhorn=10))
+    torch.save({"model": Matcher(cfg).state_dict()}, init)
+    for extra, needle in ((["--depth", "3", "--grow-copy", "0.1"], "needs --init"),
+                          (["--depth", "2", "--grow-copy", "0.1", "--init", str(init)], "fewer layers than --depth"),
+                          (["--depth", "3", "--grow-copy", "2", "--init", str(init)], "expected a scale in [0, 1]")):
+        out = subprocess.run([sys.executable, str(Path(train.__file__)), "--run", str(tmp_path / "run"), "--dim", "32",
+                              "--heads", "2", "--sinkhorn", "10", *extra], capture_output=True, text=True)
+        assert out.returncode != 0 and needle in out.stderr, (extra, out.stderr[-500:])
+
+
 def test_u_warm_started_from_a_paraformer_computes_its_outer_layers():
     """`--init` of a ParaFormer checkpoint into a ParaFormer-U run: the U's outer stages take
     layers 0 and 2, the unpooling back to the outer width starts at zero, so the U scores as

@@ -136,10 +136,14 @@ def unshare_state(state: dict, own: dict) -> dict:
     return out
 
 
-def load_init(model: Matcher, state: dict) -> list[int]:
+def load_init(model: Matcher, state: dict, copy_scale: float | None = None) -> list[int]:
     """Loads ``state`` into ``model``. A ParaFormer with more layers than ``state`` is grown:
     the init's layers come first and each new layer's last fuse Linear is zero, so that its
     residual passes the features through and the grown model computes what the init did.
+    With ``copy_scale`` the new layers instead start as copies of the init's last layers (in
+    order) with that last Linear scaled by ``copy_scale``: trained features from the first
+    step, so that every weight of the new layer gets a gradient (a zero Linear passes none to
+    the weights before it), at a small change of the init's output.
     Shared q/k/v or merges of the init become equal self and cross copies where the model
     has them separate (``unshare_state``). Returns the indices of the new layers."""
     own = model.state_dict()
@@ -157,11 +161,16 @@ def load_init(model: Matcher, state: dict) -> list[int]:
     stray = [k for k in missing if not any(k.startswith(f"layers.{i}.") for i in new)]
     if stray or unexpected:
         raise SystemExit(f"error: --init does not match the run beyond its depth: missing {stray}, unexpected {unexpected}")
+    if copy_scale is not None and len(new) > new[0]:
+        raise SystemExit(f"error: --grow-copy needs at least as many init layers ({new[0]}) as new ones ({len(new)})")
     with torch.no_grad():
-        for i in new:
+        for j, i in enumerate(new):
+            if copy_scale is not None:
+                source = new[0] - len(new) + j
+                model.layers[i].load_state_dict(model.layers[source].state_dict())
             last = model.layers[i].fuse[-1]
-            last.weight.zero_()
-            last.bias.zero_()
+            for t in (last.weight, last.bias):
+                t.mul_(copy_scale) if copy_scale is not None else t.zero_()
     return new
 
 
@@ -488,6 +497,9 @@ def main() -> None:
                     help="a run that has no checkpoint yet starts from these weights (a train.py or train_gpu.py "
                          "checkpoint: its EMA weights), e.g. to fine-tune the GPU run on real pairs; a "
                          "ParaFormer init with fewer layers than --depth is grown by identity layers")
+    ap.add_argument("--grow-copy", type=float, default=None, metavar="SCALE",
+                    help="with a grown --init: the new layers start as copies of the init's last layers, "
+                         "their last fuse Linear scaled by SCALE (e.g. 0.1), instead of as identity layers")
     ap.add_argument("--fixed-pool", default=None,
                     help="read this pre-generated pool (kept, no generator): short comparison runs")
     args = ap.parse_args()
@@ -565,11 +577,18 @@ def main() -> None:
         rng.bit_generator.state = state["rng"]
         print(f"resumed at {pairs_seen} pairs, step {steps}, stream shard {cursor}", flush=True)
     elif args.init:
-        grown = load_init(model, init_weights(args.init, model.config))
+        if args.grow_copy is not None and not 0 <= args.grow_copy <= 1:
+            sys.exit(f"error: --grow-copy {args.grow_copy:g}: expected a scale in [0, 1]")
+        grown = load_init(model, init_weights(args.init, model.config), args.grow_copy)
+        if args.grow_copy is not None and not (grown and isinstance(grown[0], int)):
+            sys.exit("error: --grow-copy needs a ParaFormer --init with fewer layers than --depth")
         ema.load_state_dict(model.state_dict())
         if heads is not None:
             heads.copy_from(model)
-        print(f"initialised from {args.init}" + (f", new (identity or silent) parts {grown}" if grown else ""), flush=True)
+        how = f"copies of the init's last layers, last Linear x{args.grow_copy:g}" if args.grow_copy is not None else "identity or silent"
+        print(f"initialised from {args.init}" + (f", new ({how}) parts {grown}" if grown else ""), flush=True)
+    elif args.grow_copy is not None:
+        sys.exit("error: --grow-copy needs --init (weights with fewer layers than --depth)")
     holdout = ensure_holdout(args.val_pairs)
     if args.validate_only:
         v = validate(ema, holdout, 512, args.val_threshold, auc=False)
