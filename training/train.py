@@ -148,10 +148,12 @@ def load_init(model: Matcher, state: dict, copy_scale: float | None = None) -> l
     has them separate (``unshare_state``). Returns the indices of the new layers."""
     own = model.state_dict()
     state = unshare_state(state, own)
-    if model.config["model"] == "paraformer_u" and any(k.startswith("layers.") for k in state):
-        return u_from_paraformer(model, state)
     new = sorted({int(k.split(".")[1]) for k in own if k.startswith("layers.")}
                  - {int(k.split(".")[1]) for k in state if k.startswith("layers.")})
+    if copy_scale is not None and (model.config["model"] != "paraformer" or not new):
+        raise SystemExit("error: --grow-copy needs a ParaFormer --init with fewer layers than --depth")
+    if model.config["model"] == "paraformer_u" and any(k.startswith("layers.") for k in state):
+        return u_from_paraformer(model, state)
     if model.config["model"] != "paraformer" or not new:
         model.load_state_dict(state)
         return []
@@ -580,8 +582,6 @@ def main() -> None:
         if args.grow_copy is not None and not 0 <= args.grow_copy <= 1:
             sys.exit(f"error: --grow-copy {args.grow_copy:g}: expected a scale in [0, 1]")
         grown = load_init(model, init_weights(args.init, model.config), args.grow_copy)
-        if args.grow_copy is not None and not (grown and isinstance(grown[0], int)):
-            sys.exit("error: --grow-copy needs a ParaFormer --init with fewer layers than --depth")
         ema.load_state_dict(model.state_dict())
         if heads is not None:
             heads.copy_from(model)
