@@ -94,7 +94,9 @@ def test_holdout_peers_mutual_nn_and_bad_arguments(tmp_path):
     for args, needle in ((["--matcher", f"a={tmp_path / 'missing.safetensors'}"], "existing weights file"),
                          (["--matcher", f"={weights}"], "LABEL=FILE"),
                          (["--matcher", f"a={weights}@high"], "not a number"),
-                         (["--holdout", str(tmp_path / "none")], "no such folder")):
+                         (["--holdout", str(tmp_path / "none")], "no such folder"),
+                         (["--blind-descriptors", "0"], "expected a probability in (0, 1]"),
+                         (["--blind-descriptors", "1.2"], "--blind-descriptors 1.2")):
         out = subprocess.run([sys.executable, script, *args], capture_output=True, text=True)
         assert out.returncode != 0 and needle in out.stderr, (args, out.stderr)
 

@@ -1015,3 +1015,39 @@ def test_bf16_teacher_stays_close_to_the_float32_teacher():
     assert 0 < tv < 0.1, tv  # bf16 really ran (not bit-equal) and stays close
     m32, m16 = set(map(tuple, (p32[0] > 0.2).nonzero().tolist())), set(map(tuple, (p16[0] > 0.2).nonzero().tolist()))
     assert len(m32) > 100 and len(m32 & m16) >= 0.9 * len(m32)
+
+
+def test_blind_descriptors_replace_a_share_of_descriptors_and_nothing_else():
+    g = torch.Generator().manual_seed(0)
+    d0 = torch.nn.functional.normalize(torch.randn(4, 500, 64, generator=g), dim=-1) * 2.0
+    bt = {"descriptors0": d0, "descriptors1": d0.flip(1).clone(), "keypoints0": torch.rand(4, 500, 2),
+          "keypoints1": torch.rand(4, 500, 2), "gt0": torch.zeros(4, 500, dtype=torch.long)}
+    same = stream.blind_descriptors(bt, 0.0, np.random.default_rng(1))
+    assert all(torch.equal(same[k], bt[k]) for k in bt)
+    out = stream.blind_descriptors(bt, 0.3, np.random.default_rng(1))
+    for view in (0, 1):
+        was, now = bt[f"descriptors{view}"], out[f"descriptors{view}"]
+        changed = (now != was).any(-1)
+        assert 0.25 < changed.float().mean().item() < 0.35
+        # The replacements keep each descriptor's norm and point elsewhere.
+        assert torch.allclose(now.norm(dim=-1), was.norm(dim=-1), atol=1e-5)
+        assert (torch.nn.functional.cosine_similarity(now, was, dim=-1)[changed].abs() < 0.6).all()
+    for k in ("keypoints0", "keypoints1", "gt0"):
+        assert out[k] is bt[k]
+    # The caller's batch is left as it was (the teacher reads it).
+    assert torch.equal(bt["descriptors0"], d0)
+    # The same seed blinds the same keypoints: a resumed run repeats its stream.
+    again = stream.blind_descriptors(bt, 0.3, np.random.default_rng(1))
+    assert torch.equal(again["descriptors0"], out["descriptors0"])
+    with pytest.raises(ValueError, match="expected a probability"):
+        stream.blind_descriptors(bt, 1.5, np.random.default_rng(1))
+
+
+def test_blind_descriptors_option_is_refused_outside_zero_to_one(tmp_path):
+    import subprocess
+
+    r = subprocess.run([sys.executable, str(ROOT / "training" / "train.py"), "--run", str(tmp_path / "r"),
+                        "--blind-descriptors", "1.5"], capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "--blind-descriptors" in r.stderr and "probability in [0, 1], got 1.5" in r.stderr
+    assert not (tmp_path / "r").exists()

@@ -13,7 +13,9 @@ Per matcher and pair kind (synthetic, real): precision, recall and F1 over the l
 keypoints (ignored ones left out, as in ``train.py``), and on synthetic pairs the homography
 AUC@1/3/5px averaged over RANSAC seeds. ``--shuffle-positions`` adds each learned matcher
 again with the keypoint positions it reads shuffled within each image: what it loses then is
-what it gets from geometry rather than from descriptors.
+what it gets from geometry rather than from descriptors. ``--blind-descriptors P`` adds every
+matcher again with a share P of descriptors replaced by random ones and reports how many of
+the true matches touching such a keypoint it still finds: what it can match by place alone.
 """
 from __future__ import annotations
 
@@ -44,6 +46,11 @@ def main() -> None:
                     help="also score each learned matcher with every image's keypoint positions shuffled "
                          "among its keypoints (descriptors, scores, labels and the AUC's points stay true): "
                          "how much it matches by geometry")
+    ap.add_argument("--blind-descriptors", type=float, default=None, metavar="P",
+                    help="also score every matcher with each keypoint's descriptor replaced, with probability P, "
+                         "by a random one of the same norm (the training's --blind-descriptors, fixed seeds), "
+                         "and report the recall of the true matches that touch such a keypoint: matching by "
+                         "place among the others")
     ap.add_argument("--json")
     args = ap.parse_args()
     specs = []
@@ -56,6 +63,8 @@ def main() -> None:
             specs.append((label, path, float(thr) if thr else None))
         except ValueError:
             sys.exit(f"error: --matcher {spec!r}: threshold {thr!r} is not a number")
+    if args.blind_descriptors is not None and not 0 < args.blind_descriptors <= 1:
+        sys.exit(f"error: --blind-descriptors {args.blind_descriptors:g}: expected a probability in (0, 1]")
     if not os.path.isdir(args.holdout):
         sys.exit(f"error: --holdout {args.holdout}: no such folder (train.py builds it on its first validation)")
     os.environ.setdefault("RAYON_NUM_THREADS", str(args.threads))
@@ -80,17 +89,26 @@ def main() -> None:
     if args.shuffle_positions:
         matchers += [(f"{label}, positions shuffled", lambda f0, f1, m=m: m(shuffled(f0, 0), shuffled(f1, 1)))
                      for label, m in matchers[1:]]
+    # Each entry: (label, match, whether it reads the pair's blinded features).
+    matchers = [(label, m, False) for label, m in matchers]
+    if args.blind_descriptors is not None:
+        matchers += [(f"{label}, {args.blind_descriptors:g} blinded", m, True) for label, m, _ in matchers
+                     if not label.endswith("positions shuffled")]
 
     pairs = []  # (features 0, features 1, labels of view 0, kind, H, image size 0)
+    blinded = []  # per pair: (blinded features 0, 1, the view-0 keypoints whose true match touches a blinded one)
     for path in stream.shard_files(args.holdout):
         shard = stream.Shard(path)
         for i in range(len(shard)):
             bt = stream.collate([(shard, i)], args.keypoints, [False])
-            feats = [{"keypoints": np.ascontiguousarray(bt[f"keypoints{v}"][0].numpy()),
-                      "scores": np.ascontiguousarray(bt[f"scores{v}"][0].numpy()),
-                      "descriptors": np.ascontiguousarray(bt[f"descriptors{v}"][0].numpy()),
-                      "image_size": shard.image_size[i][v].astype(np.float32)} for v in (0, 1)]
-            pairs.append((feats[0], feats[1], bt["gt0"][0], int(shard.kind[i]), shard.H[i], shard.image_size[i][0]))
+            pairs.append((*features(bt, shard.image_size[i]), bt["gt0"][0], int(shard.kind[i]), shard.H[i], shard.image_size[i][0]))
+            if args.blind_descriptors is not None:
+                bb = stream.blind_descriptors(bt, args.blind_descriptors, np.random.default_rng([len(pairs), 11]))
+                hit0 = (bb["descriptors0"][0] != bt["descriptors0"][0]).any(-1)
+                hit1 = (bb["descriptors1"][0] != bt["descriptors1"][0]).any(-1)
+                gt0 = bt["gt0"][0]
+                touched = (gt0 >= 0) & (hit0 | hit1[gt0.clamp(min=0)])
+                blinded.append((*features(bb, shard.image_size[i]), touched))
     print(f"{len(pairs)} holdout pairs ({sum(p[3] == 0 for p in pairs)} synthetic) at {args.keypoints} keypoints", flush=True)
     # The viewpoint bins of each synthetic pair (none without --by-viewpoint), and their sizes.
     views = [viewpoint_bins(h, size) if kind == 0 and args.by_viewpoint else [] for _, _, _, kind, h, size in pairs]
@@ -100,14 +118,20 @@ def main() -> None:
             bin_pairs[key] = bin_pairs.get(key, 0) + 1
 
     rows = []
-    for label, match in matchers:
+    for label, match, blind in matchers:
         t0 = time.time()
         counts = {0: [0, 0, 0], 1: [0, 0, 0]}
         errors: list[list[float]] = [[] for _ in range(args.ransac_seeds)]
         bins: dict[str, list[int]] = {}
-        for (f0, f1, gt0, kind, h, size), keys in zip(pairs, views):
+        touched_found = touched_all = 0
+        for n, ((f0, f1, gt0, kind, h, size), keys) in enumerate(zip(pairs, views)):
+            if blind:
+                f0, f1, touched = blinded[n]
             m0 = np.asarray(match(f0, f1), np.int64)
             c = precision_recall(torch.from_numpy(m0), gt0)
+            if blind:
+                touched_found += int((torch.from_numpy(m0)[touched] == gt0[touched]).sum())
+                touched_all += int(touched.sum())
             counts[kind] = [a + b for a, b in zip(counts[kind], c)]
             for key in keys:
                 bins[key] = [a + b for a, b in zip(bins.get(key, [0, 0, 0]), c)]
@@ -119,6 +143,9 @@ def main() -> None:
         for kind, name in ((0, "synthetic"), (1, "real")):
             p, r, f1 = prf(*counts[kind])
             row[name] = {"precision": 100 * p, "recall": 100 * r, "f1": 100 * f1, "matches": counts[kind][1]}
+        if blind:
+            row["blinded_match_recall"] = 100 * touched_found / max(touched_all, 1)
+            row["blinded_matches"] = touched_all
         aucs = np.array([[100 * a for a in g.pose_auc(e, [1, 3, 5])] for e in errors])
         row["synthetic"]["auc_1_3_5px"] = aucs.mean(0).tolist()
         row["synthetic"]["auc_sd"] = aucs.std(0).tolist()
@@ -128,7 +155,9 @@ def main() -> None:
         s, r = row["synthetic"], row["real"]
         print(f"{label:40s} synthetic P/R/F1 {s['precision']:.1f}/{s['recall']:.1f}/{s['f1']:.1f} "
               f"AUC@1/3/5 {'/'.join(f'{a:.1f}' for a in s['auc_1_3_5px'])}  real P/R/F1 "
-              f"{r['precision']:.1f}/{r['recall']:.1f}/{r['f1']:.1f}  ({row['seconds']} s)", flush=True)
+              f"{r['precision']:.1f}/{r['recall']:.1f}/{r['f1']:.1f}"
+              + (f"  blinded matches found {row['blinded_match_recall']:.1f}% of {touched_all}" if blind else "")
+              + f"  ({row['seconds']} s)", flush=True)
     if bin_pairs:
         keys = sorted(bin_pairs)
         print("\nsynthetic F1 by viewpoint change (pairs per bin: " + ", ".join(f"{k} {bin_pairs[k]}" for k in keys) + ")")
@@ -139,6 +168,14 @@ def main() -> None:
         with open(args.json, "w") as f:
             json.dump({"command": " ".join(sys.argv), "keypoints": args.keypoints, "pairs": len(pairs),
                        "ransac_seeds": args.ransac_seeds, "rows": rows}, f, indent=1)
+
+
+def features(bt: dict, image_size) -> tuple[dict, dict]:
+    """The engine's feature dicts of a one-pair collated batch."""
+    return tuple({"keypoints": np.ascontiguousarray(bt[f"keypoints{v}"][0].numpy()),
+                  "scores": np.ascontiguousarray(bt[f"scores{v}"][0].numpy()),
+                  "descriptors": np.ascontiguousarray(bt[f"descriptors{v}"][0].numpy()),
+                  "image_size": image_size[v].astype(np.float32)} for v in (0, 1))
 
 
 def shuffled(feats: dict, view: int) -> dict:

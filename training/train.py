@@ -476,6 +476,10 @@ def main() -> None:
                     help="run the --distill teacher under bfloat16 autocast: 1.6-2x faster alone (bench_teacher.py), "
                          "less inside the trainer; rows within 0.02-0.05 total variation of the float32 "
                          "teacher's (paraformer_train/teacher.py)")
+    ap.add_argument("--blind-descriptors", type=data.probability, default=0.0, metavar="P",
+                    help="probability per keypoint and view that the student sees a random descriptor of the same "
+                         "norm in its place (the teacher and the labels see the true one), so that it must match "
+                         "that keypoint by its place among the others; 0 leaves the batches unchanged")
     ap.add_argument("--synthetic-positive-px", type=float, default=None,
                     help="positive radius for synthetic pairs (default: 3 px like the evaluation; "
                          "keypoints between it and 3 px are ignored)")
@@ -655,7 +659,8 @@ def main() -> None:
                                     synthetic_positive_px=args.synthetic_positive_px)
             for g_ in opt.param_groups:
                 g_["lr"] = g_.get("lr_scale", 1.0) * lr_at(pairs_seen, args.pairs, args.warmup, args.lr, decay_from)
-            logps = log_assignments(model, heads, bt, sinkhorn, args.sinkhorn, args.bf16)
+            seen = stream.blind_descriptors(bt, args.blind_descriptors, rng) if args.blind_descriptors > 0 else bt
+            logps = log_assignments(model, heads, seen, sinkhorn, args.sinkhorn, args.bf16)
             losses = [nll_loss(logp, bt["gt0"], bt["gt1"]) for logp in logps]
             if teacher is not None:
                 t0 = time.time()
@@ -697,6 +702,8 @@ def main() -> None:
                        "loss": float(np.mean(running)) if running else None,
                        "lr": opt.param_groups[0]["lr"], "train_s": round(spent + time.time() - t_mark, 1),
                        "distinct_pairs": reader.low_water() * args.shard_size, "by_keypoints": dict(kinds)} | v
+                if args.blind_descriptors > 0:
+                    rec["blind_descriptors"] = args.blind_descriptors
                 if teacher is not None:
                     rec["distill"] = args.distill
                     rec["teacher_bf16"] = args.teacher_bf16

@@ -199,6 +199,23 @@ def collate(items: list[tuple[Shard, int]], k_max: int, swap: list[bool], thresh
     return out
 
 
+def blind_descriptors(bt: dict, p: float, rng: np.random.Generator) -> dict:
+    """A copy of a collated batch in which each keypoint of each view has, with probability
+    ``p``, its descriptor replaced by a random direction of the same norm. Labels, positions
+    and scores stay true, so such a keypoint can only be matched from where it lies among the
+    others: training pressure toward the geometric consistency our models barely use."""
+    if not 0.0 <= p <= 1.0:
+        raise ValueError(f"blind_descriptors: p {p!r}: expected a probability in [0, 1]")
+    out = dict(bt)
+    for view in (0, 1):
+        d = bt[f"descriptors{view}"]
+        mask = torch.from_numpy(rng.random(d.shape[:2]) < p)
+        noise = torch.from_numpy(rng.standard_normal(d.shape).astype(np.float32))
+        noise = noise * (d.norm(dim=-1, keepdim=True) / noise.norm(dim=-1, keepdim=True).clamp(min=1e-12))
+        out[f"descriptors{view}"] = torch.where(mask[..., None], noise, d)
+    return out
+
+
 class PoolReader:
     """Serves training pairs from the pool without ever waiting for the generator (after
     the first shard): ``resident`` shards stay in memory; a shard is retired (deleted from
