@@ -43,6 +43,7 @@ pub fn attention_forward_bf16(q: &[u16], k: &[u16], v: &[u16], bh: usize, n: usi
     if m == 0 && n > 0 && bh > 0 {
         return Err(invalid("k", "no keys: the softmax over zero keys is undefined".into()));
     }
+    require_cpu()?;
     let (mut o, mut lse) = (vec![0u16; bh * n * d], vec![0.0f32; bh * n]);
     if bh == 0 || n == 0 {
         return Ok((o, lse));
@@ -52,7 +53,8 @@ pub fn attention_forward_bf16(q: &[u16], k: &[u16], v: &[u16], bh: usize, n: usi
     Ok((o, lse))
 }
 
-/// The checks both directions share: widths, lengths, the scale and the CPU.
+/// The argument checks both directions share: widths, lengths and the scale. The CPU is
+/// checked after every argument ([`require_cpu`]), so a bad argument is named on any CPU.
 fn check(sizes: &[(&str, usize, usize)], bh: usize, n: usize, m: usize, d: usize, scale: f32) -> Result<()> {
     if !matches!(d, 16 | 32 | 64) {
         return Err(invalid("d", format!("head width {d}: expected 16, 32 or 64")));
@@ -65,6 +67,11 @@ fn check(sizes: &[(&str, usize, usize)], bh: usize, n: usize, m: usize, d: usize
     if !scale.is_finite() {
         return Err(invalid("scale", format!("{scale}: expected a finite number")));
     }
+    Ok(())
+}
+
+/// The kernels need AVX-512 F/BW/BF16 at run time.
+fn require_cpu() -> Result<()> {
     if !available() {
         return Err(invalid("attention_bf16", "this CPU lacks AVX-512 BF16".into()));
     }
@@ -98,6 +105,7 @@ pub fn attention_backward_bf16(
     if let Some(i) = lse.iter().position(|x| !x.is_finite()) {
         return Err(invalid("lse", format!("value {} at index {i} is not finite", lse[i])));
     }
+    require_cpu()?;
     let (mut dq, mut dk, mut dv) = (vec![0u16; bh * n * d], vec![0u16; bh * m * d], vec![0u16; bh * m * d]);
     if bh == 0 || n == 0 || m == 0 {
         return Ok((dq, dk, dv));
@@ -552,5 +560,10 @@ mod tests {
         assert!(fwd(attention_forward_bf16(&x, &x, &x[2..], 2, 4, 4, 16, 0.25)).contains("`v`"));
         assert!(fwd(attention_forward_bf16(&x, &x, &x, 2, 4, 4, 12, 0.25)).contains("`d`"));
         assert!(fwd(attention_forward_bf16(&x, &[], &[], 2, 4, 0, 16, 0.25)).contains("`k`"));
+        // Without AVX-512 BF16, valid arguments get the CPU's error rather than a wrong result.
+        if !available() {
+            assert!(fwd(attention_forward_bf16(&x, &x, &x, 2, 4, 4, 16, 0.25)).contains("AVX-512 BF16"));
+            assert!(err(attention_backward_bf16(&x, &x, &x, &x, &x, &l, 2, 4, 4, 16, 0.25)).contains("AVX-512 BF16"));
+        }
     }
 }
