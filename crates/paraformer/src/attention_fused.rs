@@ -1,4 +1,5 @@
-//! Fused attention for narrow heads (head width 16, 32 or 64) on AVX-512 CPUs: the same
+//! Fused attention for narrow heads (head width 16, 32 or 64) on AVX-512 CPUs (and, in
+//! fp32, on AVX2 CPUs through [`crate::attention_fused_avx2`]'s 8-lane kernels): the same
 //! results as [`crate::attention`] (SPEC §4–§5, softmax over keys; the shared cross
 //! attention's transposed softmax), computed in one pass per strip of 16 query rows.
 //!
@@ -67,16 +68,17 @@ use crate::kernels::{internal, to_bf16, Matrix, SharedMut, View};
 /// Query rows per strip: the unit of the score buffer (`STRIP × N` floats).
 pub(crate) const STRIP: usize = 16;
 /// Query rows per task of the shared cross attention (fixed, for reproducible sums).
-const CROSS_ROWS: usize = 256;
+pub(crate) const CROSS_ROWS: usize = 256;
 /// At most this many cross-attention tasks per head: each holds an `N × d` column state
 /// until the merge, so larger inputs get more rows per task (a function of `M` only).
-const CROSS_TASKS: usize = 8;
+pub(crate) const CROSS_TASKS: usize = 8;
 /// Start of a running column maximum: finite, so that `exp2(start − max)` is 0, not NaN.
-const NEG: f32 = -1e30;
+pub(crate) const NEG: f32 = -1e30;
 
-/// Whether the fused kernels serve head width `d` here (AVX-512F at run time).
+/// Whether the fused kernels serve head width `d` here: AVX-512F at run time, or AVX2 and
+/// FMA for the fp32 kernels of [`crate::attention_fused_avx2`].
 pub fn available(d: usize) -> bool {
-    matches!(d, 16 | 32 | 64) && crate::kernels::simd_level() >= 4
+    matches!(d, 16 | 32 | 64) && crate::kernels::simd_level() >= 3
 }
 
 /// Whether this CPU runs the bf16 kernels (AVX-512 BF16 at run time).
@@ -93,26 +95,26 @@ fn runs(d: usize, bf16: bool) -> bool {
 // ---- packing ------------------------------------------------------------------------
 
 /// The operands of one attention call, packed per head.
-struct Packed {
-    heads: usize,
-    d: usize,
+pub(crate) struct Packed {
+    pub(crate) heads: usize,
+    pub(crate) d: usize,
     /// Query rows and key columns, and both padded (rows to `STRIP`, columns to 32).
-    m: usize,
-    n: usize,
-    mp: usize,
-    np: usize,
+    pub(crate) m: usize,
+    pub(crate) n: usize,
+    pub(crate) mp: usize,
+    pub(crate) np: usize,
     /// Row stride of the score strips: `np` plus a cache line, so that the 16 rows do not
     /// all fall into the same L1 sets (a power-of-two stride thrashes them).
-    ld: usize,
+    pub(crate) ld: usize,
     /// `[H][mp][d]` queries × `log2(e)/√d` (fp32), or as bf16 pairs when `bf16`.
-    q: Vec<f32>,
+    pub(crate) q: Vec<f32>,
     /// `[H][np/16][d][16]` keys transposed in 16-column panels; bf16: `[H][np/16][d/2][16][2]`.
-    k: Vec<f32>,
+    pub(crate) k: Vec<f32>,
     q16: Vec<u16>,
     k16: Vec<u16>,
 }
 
-fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
+pub(crate) fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
     let (m, n, c) = (q.rows, k.rows, q.cols);
     let d = c / heads;
     let (mp, np) = (m.div_ceil(STRIP) * STRIP, n.div_ceil(32) * 32);
@@ -370,6 +372,10 @@ pub(crate) unsafe fn values_bf16<const D: usize>(p16: *const u16, ld: usize, n: 
 /// (`Σ_h Σ_i A[h,i,j]`), as [`crate::attention::attention`]; an error where this CPU
 /// lacks the kernels ([`available`], and [`bf16_available`] for `bf16`).
 pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool, bf16: bool) -> Result<(Matrix, Option<Vec<f32>>)> {
+    if crate::kernels::simd_level() == 3 {
+        // AVX2 without AVX-512: the fp32 kernels (bf16 runs as fp32 on such CPUs).
+        return crate::attention_fused_avx2::attention(q, k, v, heads, col_sums);
+    }
     let (m, n, c) = (q.rows, k.rows, q.cols);
     if k.cols != c || v.cols != c || v.rows != n || heads == 0 || c % heads != 0 || !v.fits() || !runs(c / heads, bf16) {
         return Err(internal(format!("fused attention q {m}×{c}, k {}×{}, v {}×{}, {heads} heads", k.rows, k.cols, v.rows, v.cols)));
@@ -511,16 +517,19 @@ unsafe fn self_strip<const D: usize, const BF: bool>(job: &SelfJob, s: &mut [f32
 // ---- shared cross attention ---------------------------------------------------------
 
 /// Column-direction state of one task: running maxima, sums and `Σ_i e_ij·vx_i`.
-struct ColumnState {
-    max: Vec<f32>,
-    sum: Vec<f32>,
-    acc: Vec<f32>,
+pub(crate) struct ColumnState {
+    pub(crate) max: Vec<f32>,
+    pub(crate) sum: Vec<f32>,
+    pub(crate) acc: Vec<f32>,
 }
 
 /// Cross attention with attention-weight sharing, as
 /// [`crate::attention::cross_attention_shared`]: `(softmax_rows(S)·vy, softmax_rows(Sᵀ)·vx)`
 /// with `S = qx·kyᵀ/√d` per head.
 pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usize, bf16: bool) -> Result<(Matrix, Matrix)> {
+    if crate::kernels::simd_level() == 3 {
+        return crate::attention_fused_avx2::cross_attention_shared(qx, ky, vx, vy, heads);
+    }
     let (m, n, c) = (qx.rows, ky.rows, qx.cols);
     if ky.cols != c || vx.cols != c || vy.cols != c || vx.rows != m || vy.rows != n || heads == 0 || c % heads != 0 || !vx.fits() || !vy.fits() || !runs(c / heads, bf16) {
         return Err(internal(format!("fused cross attention qx {m}×{c}, ky {n}×{}, {heads} heads", ky.cols)));
@@ -555,7 +564,14 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
             }
         })
         .collect();
-    // Merge the chunks of each head in order: rescale each to the overall column maximum.
+    merge_columns(&states, heads, chunks, d, &mut out_y);
+    Ok((out_x, out_y))
+}
+
+/// Merges the column states of each head's chunks (`states[chunk · heads + h]`) in order,
+/// each rescaled to the overall column maximum, into `out_y` `[N, H·d]`.
+pub(crate) fn merge_columns(states: &[ColumnState], heads: usize, chunks: usize, d: usize, out_y: &mut Matrix) {
+    let (n, c) = (out_y.rows, out_y.cols);
     for h in 0..heads {
         let parts: Vec<&ColumnState> = (0..chunks).map(|ch| &states[ch * heads + h]).collect();
         for j in 0..n {
@@ -575,7 +591,6 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
             }
         }
     }
-    Ok((out_x, out_y))
 }
 
 /// One task of the shared cross attention: rows `rows.0..rows.1` of head `h`.
@@ -742,12 +757,13 @@ unsafe fn column_values<const D: usize>(s: *const f32, np: usize, ld: usize, row
 }
 }
 
+/// Test helpers shared with [`crate::attention_fused_avx2`]'s tests.
 #[cfg(all(test, target_arch = "x86_64"))]
-mod tests {
+pub(crate) mod tests {
     use crate::attention::{attention, cross_attention_shared};
     use crate::kernels::{Ctx, Matrix, Precision};
 
-    fn random(rows: usize, cols: usize, seed: u64, amp: f32) -> Matrix {
+    pub(crate) fn random(rows: usize, cols: usize, seed: u64, amp: f32) -> Matrix {
         let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
         let data = (0..rows * cols)
             .map(|_| {
@@ -760,12 +776,12 @@ mod tests {
         Matrix { rows, cols, data }
     }
 
-    fn max_diff(a: &[f32], b: &[f32]) -> f32 {
+    pub(crate) fn max_diff(a: &[f32], b: &[f32]) -> f32 {
         assert_eq!(a.len(), b.len());
         a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
     }
 
-    fn general() -> Ctx {
+    pub(crate) fn general() -> Ctx {
         let mut ctx = Ctx::default();
         ctx.fused = false;
         ctx
@@ -776,7 +792,7 @@ mod tests {
     #[test]
     fn fused_matches_the_general_path() {
         if !super::available(16) {
-            eprintln!("skipped: no AVX-512 here");
+            eprintln!("skipped: no AVX2 or AVX-512 here");
             return;
         }
         for &(m, n, c, heads, amp) in &[(77, 53, 64, 4, 1.0), (600, 301, 64, 2, 2.0), (33, 517, 128, 2, 1.5), (5, 1, 32, 2, 1.0), (300, 300, 64, 1, 3.0), (2100, 40, 64, 2, 1.0)] {
@@ -812,7 +828,7 @@ mod tests {
     #[test]
     fn fused_is_reproducible_across_thread_counts() {
         if !super::available(32) {
-            eprintln!("skipped: no AVX-512 here");
+            eprintln!("skipped: no AVX2 or AVX-512 here");
             return;
         }
         let (q, k, v) = (random(700, 64, 7, 2.0), random(650, 64, 8, 2.0), random(650, 64, 9, 1.0));

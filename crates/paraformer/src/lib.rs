@@ -38,6 +38,8 @@
 pub mod attention;
 #[doc(hidden)]
 pub mod attention_fused;
+#[doc(hidden)]
+pub mod attention_fused_avx2;
 pub mod attention_grad;
 pub mod config;
 #[doc(hidden)]
