@@ -27,6 +27,20 @@ fn runs(d: usize) -> bool {
     matches!(d, 16 | 32 | 64) && crate::kernels::simd_level() >= 3
 }
 
+/// Values of every head contiguous, `[H][n][d]`: the value product streams one head's
+/// values once per 6-row tile, so they should stay in L2 (`[n][H·d]` rows of the
+/// projections are 3C apart and are not).
+fn pack_values(v: View, heads: usize) -> Vec<f32> {
+    let (n, d) = (v.rows, v.cols / heads);
+    let mut out = vec![0.0f32; heads * n * d];
+    out.par_chunks_mut(n * d).enumerate().for_each(|(h, o)| {
+        for (j, row) in o.chunks_exact_mut(d).enumerate() {
+            row.copy_from_slice(&v.row(j)[h * d..(h + 1) * d]);
+        }
+    });
+    out
+}
+
 // ---- vector helpers -----------------------------------------------------------------
 
 /// `2^x` to 2.4e-7 relative error (the degree-5 minimax of the AVX-512 kernels on
@@ -79,9 +93,8 @@ unsafe fn hsum(v: __m256) -> f32 {
 
 // ---- micro-kernels ------------------------------------------------------------------
 
-/// Rows per register tile: 6 rows × 16 columns is 12 accumulators, with registers left
-/// for two operand loads and a broadcast (16 ymm in all); 16-row strips take tiles of
-/// 6, 6 and 4 rows.
+/// Register tiles of 6 rows (or columns) × 16: 12 accumulators, with registers left for
+/// two operand loads and a broadcast (16 ymm in all); 16 rows take tiles of 6, 6 and 4.
 const TILES: [(usize, usize); 3] = [(0, 6), (6, 6), (12, 4)];
 
 /// Scores of a strip: `s[r][j] = Σ_t q[r][t]·kᵀ[t][j]` for 16 rows and all `np` columns
@@ -184,14 +197,14 @@ unsafe fn values_tile<const R: usize>(p: *const f32, ld: usize, n: usize, v: *co
 /// then holds the unnormalised probabilities.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-unsafe fn strip_rows<const D: usize>(pk: &Packed, h: usize, r0: usize, rows: usize, s: &mut [f32], v: View, dst: SharedMut) -> [f32; STRIP] {
+unsafe fn strip_rows<const D: usize>(pk: &Packed, h: usize, r0: usize, rows: usize, s: &mut [f32], vp: &[f32], dst: SharedMut) -> [f32; STRIP] {
     let (n, np, ld, c) = (pk.n, pk.np, pk.ld, pk.heads * D);
     let mut inv = [0.0f32; STRIP];
     for (r, iv) in inv.iter_mut().enumerate() {
         *iv = 1.0 / exp_row(s.as_mut_ptr().add(r * ld), np);
     }
     let mut out = [[0.0f32; 64]; STRIP];
-    values::<D>(s.as_ptr(), ld, n, v.data.as_ptr().add(h * D), v.stride, &mut out);
+    values::<D>(s.as_ptr(), ld, n, vp.as_ptr().add(h * n * D), D, &mut out);
     for (r, o) in out.iter().enumerate().take(rows) {
         let row = dst.at((r0 + r) * c + h * D);
         for (t, x) in o[..D].iter().enumerate() {
@@ -222,6 +235,7 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool) -> Res
         return Ok((out, col_sums.then(|| vec![0.0; n])));
     }
     let pk = pack(q, k, heads, false);
+    let vp = pack_values(v, heads);
     let (d, strips) = (pk.d, pk.mp / STRIP);
     let dst = SharedMut(out.data.as_mut_ptr());
     let per_task: Vec<Vec<f32>> = (0..heads * strips)
@@ -235,9 +249,9 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool) -> Res
                 // rows st·16.. of columns h·d..(h+1)·d of `out`.
                 unsafe {
                     match d {
-                        16 => self_strip::<16>(&pk, v, h, st, dst, s, &mut cs),
-                        32 => self_strip::<32>(&pk, v, h, st, dst, s, &mut cs),
-                        _ => self_strip::<64>(&pk, v, h, st, dst, s, &mut cs),
+                        16 => self_strip::<16>(&pk, &vp, h, st, dst, s, &mut cs),
+                        32 => self_strip::<32>(&pk, &vp, h, st, dst, s, &mut cs),
+                        _ => self_strip::<64>(&pk, &vp, h, st, dst, s, &mut cs),
                     }
                 }
                 cs
@@ -259,11 +273,11 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool) -> Res
 /// One strip of self attention: rows `st·16..` of head `h`, and their probabilities
 /// summed per column into `cs` when it is not empty.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn self_strip<const D: usize>(pk: &Packed, v: View, h: usize, st: usize, dst: SharedMut, s: &mut [f32], cs: &mut [f32]) {
+unsafe fn self_strip<const D: usize>(pk: &Packed, vp: &[f32], h: usize, st: usize, dst: SharedMut, s: &mut [f32], cs: &mut [f32]) {
     let r0 = st * STRIP;
     let rows = STRIP.min(pk.m - r0);
     strip_scores::<D>(pk, h, r0, s);
-    let inv = strip_rows::<D>(pk, h, r0, rows, s, v, dst);
+    let inv = strip_rows::<D>(pk, h, r0, rows, s, vp, dst);
     for (r, iv) in inv.iter().enumerate().take(if cs.is_empty() { 0 } else { rows }) {
         for (a, e) in cs.iter_mut().zip(&s[r * pk.ld..r * pk.ld + pk.n]) {
             *a += e * iv;
@@ -286,6 +300,7 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
         return Ok((out_x, out_y));
     }
     let pk = pack(qx, ky, heads, false);
+    let vyp = pack_values(vy, heads);
     let d = pk.d;
     let rows_per_task = CROSS_ROWS.max(m.div_ceil(CROSS_TASKS).div_ceil(STRIP) * STRIP);
     let chunks = m.div_ceil(rows_per_task);
@@ -299,9 +314,9 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
             // ch·rows_per_task.. of columns h·d..(h+1)·d of `out_x`.
             unsafe {
                 match d {
-                    16 => cross_chunk::<16>(&pk, vx, vy, h, rows, dx),
-                    32 => cross_chunk::<32>(&pk, vx, vy, h, rows, dx),
-                    _ => cross_chunk::<64>(&pk, vx, vy, h, rows, dx),
+                    16 => cross_chunk::<16>(&pk, vx, &vyp, h, rows, dx),
+                    32 => cross_chunk::<32>(&pk, vx, &vyp, h, rows, dx),
+                    _ => cross_chunk::<64>(&pk, vx, &vyp, h, rows, dx),
                 }
             }
         })
@@ -313,7 +328,7 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
 /// One task of the shared cross attention: rows `first..last` of head `h`; returns its
 /// column state (running maxima, sums and `Σ_i e_ij·vx_i`) for the merge.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn cross_chunk<const D: usize>(pk: &Packed, vx: View, vy: View, h: usize, (first, last): (usize, usize), dx: SharedMut) -> ColumnState {
+unsafe fn cross_chunk<const D: usize>(pk: &Packed, vx: View, vyp: &[f32], h: usize, (first, last): (usize, usize), dx: SharedMut) -> ColumnState {
     let (np, ld) = (pk.np, pk.ld);
     let mut st = ColumnState { max: vec![NEG; np], sum: vec![0.0; np], acc: vec![0.0; np * D] };
     let mut s = vec![0.0f32; STRIP * ld];
@@ -347,7 +362,7 @@ unsafe fn cross_chunk<const D: usize>(pk: &Packed, vx: View, vy: View, h: usize,
         }
         column_values::<D>(sp, np, ld, rows, &mut st, vx.data.as_ptr().add(r0 * vx.stride + h * D), vx.stride);
         // Rows: softmax over the keys, values of image 1.
-        strip_rows::<D>(pk, h, r0, rows, &mut s, vy, dx);
+        strip_rows::<D>(pk, h, r0, rows, &mut s, vyp, dx);
     }
     let n = pk.n;
     st.max.truncate(n);
@@ -357,43 +372,53 @@ unsafe fn cross_chunk<const D: usize>(pk: &Packed, vx: View, vy: View, h: usize,
 }
 
 /// Column direction of one strip: `e_rj = 2^(s_rj − max_j)`, `sum_j += Σ_r e_rj` and
-/// `acc_j += Σ_r e_rj·vx_r`, in tiles of `8 / (D/8)` columns × `D`: 8 accumulators.
+/// `acc_j += Σ_r e_rj·vx_r`, for 16 columns at a time in tiles of up to 6 columns × 16
+/// channels ([`TILES`]): 12 accumulators.
 #[inline(always)]
 unsafe fn column_values<const D: usize>(s: *const f32, np: usize, ld: usize, rows: usize, st: &mut ColumnState, vx: *const f32, vx_stride: usize) {
-    let dv = D / 8;
-    let cols = 8 / dv;
-    let mut e = [[0.0f32; 8]; STRIP];
-    for j0 in (0..np).step_by(8) {
-        let mx = _mm256_loadu_ps(st.max.as_ptr().add(j0));
-        let mut sum = _mm256_loadu_ps(st.sum.as_ptr().add(j0));
-        for (r, er) in e.iter_mut().enumerate().take(rows) {
-            let x = exp2v(_mm256_sub_ps(_mm256_loadu_ps(s.add(r * ld + j0)), mx));
-            sum = _mm256_add_ps(sum, x);
-            _mm256_storeu_ps(er.as_mut_ptr(), x);
-        }
-        _mm256_storeu_ps(st.sum.as_mut_ptr().add(j0), sum);
-        for jt in (0..8).step_by(cols) {
-            let mut acc = [_mm256_setzero_ps(); 8];
-            for (r, er) in e.iter().enumerate().take(rows) {
-                let vp = vx.add(r * vx_stride);
-                let mut a = [_mm256_setzero_ps(); 4];
-                for (jj, x) in a.iter_mut().enumerate().take(cols) {
-                    *x = _mm256_broadcast_ss(&er[jt + jj]);
-                }
-                for cc in 0..dv {
-                    let x = _mm256_loadu_ps(vp.add(cc * 8));
-                    for jj in 0..cols {
-                        acc[jj * dv + cc] = _mm256_fmadd_ps(a[jj], x, acc[jj * dv + cc]);
-                    }
-                }
+    let mut e = [[0.0f32; 16]; STRIP];
+    for j0 in (0..np).step_by(16) {
+        for half in [j0, j0 + 8] {
+            let mx = _mm256_loadu_ps(st.max.as_ptr().add(half));
+            let mut sum = _mm256_loadu_ps(st.sum.as_ptr().add(half));
+            for (r, er) in e.iter_mut().enumerate().take(rows) {
+                let x = exp2v(_mm256_sub_ps(_mm256_loadu_ps(s.add(r * ld + half)), mx));
+                sum = _mm256_add_ps(sum, x);
+                _mm256_storeu_ps(er.as_mut_ptr().add(half - j0), x);
             }
-            for jj in 0..cols {
-                let ap = st.acc.as_mut_ptr().add((j0 + jt + jj) * D);
-                for cc in 0..dv {
-                    _mm256_storeu_ps(ap.add(cc * 8), _mm256_add_ps(_mm256_loadu_ps(ap.add(cc * 8)), acc[jj * dv + cc]));
+            _mm256_storeu_ps(st.sum.as_mut_ptr().add(half), sum);
+        }
+        for c in (0..D).step_by(16) {
+            for (jt, cols) in TILES {
+                let acc = st.acc.as_mut_ptr().add((j0 + jt) * D + c);
+                if cols == 6 {
+                    column_tile::<D, 6>(&e, jt, rows, vx.add(c), vx_stride, acc);
+                } else {
+                    column_tile::<D, 4>(&e, jt, rows, vx.add(c), vx_stride, acc);
                 }
             }
         }
+    }
+}
+
+/// `C` columns from `jt` × 16 channels of [`column_values`]: `acc[jj] += Σ_r e[r][jt+jj]·vx_r`
+/// (`acc` at column `jt`, channel block start; row stride `D`).
+#[inline(always)]
+unsafe fn column_tile<const D: usize, const C: usize>(e: &[[f32; 16]; STRIP], jt: usize, rows: usize, vx: *const f32, vx_stride: usize, acc: *mut f32) {
+    let mut t = [[_mm256_setzero_ps(); 2]; C];
+    for (r, er) in e.iter().enumerate().take(rows) {
+        let vp = vx.add(r * vx_stride);
+        let (v0, v1) = (_mm256_loadu_ps(vp), _mm256_loadu_ps(vp.add(8)));
+        for (jj, a) in t.iter_mut().enumerate() {
+            let x = _mm256_broadcast_ss(&er[jt + jj]);
+            a[0] = _mm256_fmadd_ps(x, v0, a[0]);
+            a[1] = _mm256_fmadd_ps(x, v1, a[1]);
+        }
+    }
+    for (jj, a) in t.iter().enumerate() {
+        let ap = acc.add(jj * D);
+        _mm256_storeu_ps(ap, _mm256_add_ps(_mm256_loadu_ps(ap), a[0]));
+        _mm256_storeu_ps(ap.add(8), _mm256_add_ps(_mm256_loadu_ps(ap.add(8)), a[1]));
     }
 }
 }
