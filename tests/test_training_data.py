@@ -402,7 +402,7 @@ def test_grow_copy_misuse_is_refused_with_the_reason(tmp_path):
     for extra, needle in ((["--depth", "3", "--grow-copy", "0.1"], "needs --init"),
                           (["--depth", "2", "--grow-copy", "0.1", "--init", str(init)], "fewer layers than --depth"),
                           (["--depth", "3", "--grow-copy", "2", "--init", str(init)], "expected a scale in [0, 1]")):
-        out = subprocess.run([sys.executable, str(Path(train.__file__)), "--run", str(tmp_path / "run"), "--dim", "32",
+        out = subprocess.run([sys.executable, str(Path(train.__file__)), "--run", str(tmp_path / "run"), "--work", str(tmp_path / "work"), "--dim", "32",
                               "--heads", "2", "--sinkhorn", "10", *extra], capture_output=True, text=True)
         assert out.returncode != 0 and needle in out.stderr, (extra, out.stderr[-500:])
 
@@ -666,7 +666,7 @@ def test_phase_gain_spreads_the_wave_pe_frequencies_and_names_misuse(tmp_path):
     script = str(Path(train.__file__))
     for extra, needle in ((["--phase-gain", "5", "2"], "0 < LO <= HI"),
                           (["--phase-gain", "1", "2", "--init", str(tmp_path / "w.pt")], "fresh start")):
-        out = subprocess.run([sys.executable, script, "--run", str(tmp_path / "run"), "--dim", "32", *extra],
+        out = subprocess.run([sys.executable, script, "--run", str(tmp_path / "run"), "--work", str(tmp_path / "work"), "--dim", "32", *extra],
                              capture_output=True, text=True)
         assert out.returncode != 0 and needle in out.stderr, (extra, out.stderr)
 
@@ -683,7 +683,7 @@ def test_decay_start_anneals_a_branch_from_where_it_stands(tmp_path):
     assert lr_at(68_000, 78_000, 4000, 5e-4, 58_000 / 78_000) == pytest.approx(5e-4 * 0.55)
     assert lr_at(78_000, 78_000, 4000, 5e-4, 58_000 / 78_000) == pytest.approx(5e-5)
     script = str(Path(__file__).resolve().parents[1] / "training" / "train.py")
-    out = subprocess.run([sys.executable, script, "--run", str(tmp_path / "run"), "--dim", "32",
+    out = subprocess.run([sys.executable, script, "--run", str(tmp_path / "run"), "--work", str(tmp_path / "work"), "--dim", "32",
                           "--pairs", "1000", "--decay-start", "1000"], capture_output=True, text=True)
     assert out.returncode != 0 and "--decay-start 1000" in out.stderr and "(1000)" in out.stderr, out.stderr
 
@@ -825,7 +825,7 @@ def test_native_attention_equals_float64_as_closely_as_sdpa():
 def test_native_attention_flag_needs_bf16(tmp_path):
     import subprocess
 
-    out = subprocess.run([sys.executable, str(ROOT / "training" / "train.py"), "--run", str(tmp_path / "r"),
+    out = subprocess.run([sys.executable, str(ROOT / "training" / "train.py"), "--run", str(tmp_path / "r"), "--work", str(tmp_path / "work"),
                           "--native-attention", "--pairs", "10"], capture_output=True, text=True)
     assert out.returncode != 0 and "--native-attention" in out.stderr and "--bf16" in out.stderr, out.stderr
 
@@ -1046,8 +1046,20 @@ def test_blind_descriptors_replace_a_share_of_descriptors_and_nothing_else():
 def test_blind_descriptors_option_is_refused_outside_zero_to_one(tmp_path):
     import subprocess
 
-    r = subprocess.run([sys.executable, str(ROOT / "training" / "train.py"), "--run", str(tmp_path / "r"),
+    r = subprocess.run([sys.executable, str(ROOT / "training" / "train.py"), "--run", str(tmp_path / "r"), "--work", str(tmp_path / "work"),
                         "--blind-descriptors", "1.5"], capture_output=True, text=True)
     assert r.returncode == 2, r.stderr
     assert "--blind-descriptors" in r.stderr and "probability in [0, 1], got 1.5" in r.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_bf16_support_is_read_from_the_cpu_flags():
+    from train import cpu_has_bf16
+
+    zen3 = "processor\t: 0\nflags\t\t: fpu sse2 avx fma avx2\n\nprocessor\t: 1\nflags\t\t: fpu sse2 avx fma avx2\n"
+    zen5 = "processor\t: 0\nflags\t\t: avx2 avx512f avx512bw avx512_bf16 avx512_vnni\n"
+    graviton3 = "processor\t: 0\nFeatures\t: fp asimd sve bf16 i8mm\n"
+    assert cpu_has_bf16(zen3) is False
+    assert cpu_has_bf16(zen5) is True
+    assert cpu_has_bf16(graviton3) is True
+    assert cpu_has_bf16("model name\t: unknown\n") is None
