@@ -12,7 +12,7 @@ use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::kernels::{exp_fast, exp_sub_accumulate, softmax_rows, Ctx, Matrix, Precision, SharedMut, View};
+use crate::kernels::{exp_fast, exp_sub_accumulate, softmax_rows, sum_in_order, Ctx, Matrix, Precision, SharedMut, View};
 use crate::mlp::Linear;
 
 /// Query rows per block: a `BLOCK × N` score block stays in L2 for N ≲ 4096.
@@ -84,14 +84,8 @@ pub fn attention(ctx: &Ctx, q: View, k: View, v: View, heads: usize, col_sums: b
             cs
         })
         .collect();
-    let mut sums = vec![0.0f32; if col_sums { n } else { 0 }];
-    for cs in &per_task {
-        for (a, p) in sums.iter_mut().zip(cs) {
-            *a += p;
-        }
-    }
     take(err)?;
-    Ok((out, col_sums.then_some(sums)))
+    Ok((out, col_sums.then(|| sum_in_order(&per_task, n))))
 }
 
 /// Cross-attention with attention-weight sharing (SPEC §5): per head the scores

@@ -63,7 +63,7 @@ use std::arch::x86_64::*;
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::kernels::{internal, to_bf16, Matrix, SharedMut, View};
+use crate::kernels::{internal, sum_in_order, to_bf16, Matrix, SharedMut, View};
 
 /// Query rows per strip: the unit of the score buffer (`STRIP × N` floats).
 pub(crate) const STRIP: usize = 16;
@@ -415,16 +415,7 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool, bf16: 
             },
         )
         .collect();
-    let sums = col_sums.then(|| {
-        let mut sums = vec![0.0f32; n];
-        for cs in &per_task {
-            for (a, p) in sums.iter_mut().zip(cs) {
-                *a += p;
-            }
-        }
-        sums
-    });
-    Ok((out, sums))
+    Ok((out, col_sums.then(|| sum_in_order(&per_task, n))))
 }
 
 /// One strip of self attention: rows `st·16..` of head `h`.

@@ -20,7 +20,7 @@ use rayon::prelude::*;
 
 use crate::attention_fused::x86::{merge_columns, pack, ColumnState, Packed, CROSS_ROWS, CROSS_TASKS, NEG, STRIP};
 use crate::error::Result;
-use crate::kernels::{internal, Matrix, SharedMut, View};
+use crate::kernels::{internal, sum_in_order, Matrix, SharedMut, View};
 
 /// Whether these kernels run here and serve head width `d`.
 fn runs(d: usize) -> bool {
@@ -279,16 +279,7 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool) -> Res
             },
         )
         .collect();
-    let sums = col_sums.then(|| {
-        let mut sums = vec![0.0f32; n];
-        for cs in &per_task {
-            for (a, p) in sums.iter_mut().zip(cs) {
-                *a += p;
-            }
-        }
-        sums
-    });
-    Ok((out, sums))
+    Ok((out, col_sums.then(|| sum_in_order(&per_task, n))))
 }
 
 /// One strip of self attention: rows `st·16..` of head `h`, and their probabilities

@@ -79,6 +79,18 @@ impl<'a> View<'a> {
     }
 }
 
+/// Element-wise sum of per-task vectors of length `n`, added in task order: the attention
+/// kernels' column sums, the same for any thread count. Empty tasks are skipped.
+pub(crate) fn sum_in_order(parts: &[Vec<f32>], n: usize) -> Vec<f32> {
+    let mut sums = vec![0.0f32; n];
+    for part in parts {
+        for (a, p) in sums.iter_mut().zip(part) {
+            *a += p;
+        }
+    }
+    sums
+}
+
 pub(crate) fn internal(msg: String) -> Error {
     Error::Tensor(candle_core::Error::Msg(format!("internal shape error: {msg}")))
 }
