@@ -394,3 +394,19 @@ def test_training_attention_kernels_name_bad_arguments():
         with pytest.raises(ValueError) as e:
             call()
         assert str(e.value).startswith(f"{name}:"), (name, str(e.value))
+
+
+def test_allocator_is_chosen_by_the_environment_and_a_bad_value_is_named():
+    """The native code's allocator: mimalloc by default, the system's with
+    PARAFORMER_ALLOCATOR=system; another value makes the import fail with its name."""
+    code = "import paraformer, paraformer._paraformer as n; print(n.allocator())"
+    env = {k: v for k, v in os.environ.items() if k != "PARAFORMER_ALLOCATOR"}
+    assert paraformer._paraformer.allocator() in ("mimalloc", "system")
+    for value, name in ((None, "mimalloc"), ("system", "system"), ("mimalloc", "mimalloc")):
+        e = dict(env, **({} if value is None else {"PARAFORMER_ALLOCATOR": value}))
+        out = subprocess.run([sys.executable, "-c", code], env=e, capture_output=True, text=True)
+        assert out.returncode == 0 and out.stdout.strip() == name, (value, out.stdout, out.stderr)
+    out = subprocess.run([sys.executable, "-c", code], env=dict(env, PARAFORMER_ALLOCATOR="tcmalloc"),
+                         capture_output=True, text=True)
+    assert out.returncode != 0
+    assert "PARAFORMER_ALLOCATOR" in out.stderr and "tcmalloc" in out.stderr and "expected" in out.stderr, out.stderr

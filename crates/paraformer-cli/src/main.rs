@@ -293,7 +293,7 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             }
         }
         Command::Bench { model, keypoints, repeat } => {
-            println!("simd: {}, threads: {}", paraformer::kernels::simd_name(), rayon_threads());
+            println!("simd: {}, threads: {}, allocator: {}", paraformer::kernels::simd_name(), rayon_threads(), paraformer::allocator::name());
             println!("{:<13} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>11}", "model", "kp", "total ms", "encoder", "layers", "final", "sinkhorn", "extract", "GFLOP/s net");
             println!("precision: {} (runs as {})", precision().name(), precision().effective().name());
             for name in &model {
@@ -612,7 +612,15 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
     Ok(())
 }
 
+// mimalloc unless PARAFORMER_ALLOCATOR=system (paraformer::allocator; README, Performance).
+#[global_allocator]
+static GLOBAL: paraformer::allocator::ProcessAllocator = paraformer::allocator::ProcessAllocator;
+
 fn main() -> ExitCode {
+    if let Err(e) = paraformer::allocator::check_env() {
+        eprintln!("error: {e}");
+        return ExitCode::FAILURE;
+    }
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

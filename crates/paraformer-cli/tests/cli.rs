@@ -208,3 +208,26 @@ fn precision_bf16_matches_the_sample_pair_and_bad_values_are_named() {
     let (ok, _, err) = run(&["match", &sample("coffee_0.jpg"), &sample("coffee_1.jpg"), "--precision", "fp16"]);
     assert!(!ok && err.contains("--precision") && err.contains("fp16"), "{err}");
 }
+
+/// `PARAFORMER_ALLOCATOR` selects mimalloc (the default) or the system allocator, and the
+/// bench header names the one in use; any other value is refused by name.
+#[test]
+fn allocator_is_chosen_by_the_environment_and_reported() {
+    let bench = |value: Option<&str>| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_paraformer"));
+        cmd.args(["bench", "--model", "superglue", "--keypoints", "16", "--repeat", "1"]).env_remove("PARAFORMER_ALLOCATOR");
+        if let Some(v) = value {
+            cmd.env("PARAFORMER_ALLOCATOR", v);
+        }
+        let out = cmd.output().expect("binary runs");
+        (out.status.success(), String::from_utf8_lossy(&out.stdout).into_owned(), String::from_utf8_lossy(&out.stderr).into_owned())
+    };
+    for (value, name) in [(None, "mimalloc"), (Some("mimalloc"), "mimalloc"), (Some("system"), "system")] {
+        let (ok, out, err) = bench(value);
+        assert!(ok, "{value:?}: {err}");
+        assert!(out.contains(&format!("allocator: {name}")), "{value:?}: {out}");
+    }
+    let (ok, _, err) = bench(Some("jemalloc"));
+    assert!(!ok);
+    assert!(err.contains("PARAFORMER_ALLOCATOR") && err.contains("\"jemalloc\"") && err.contains("expected"), "{err}");
+}

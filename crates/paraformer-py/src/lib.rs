@@ -834,6 +834,17 @@ fn attention_backward_bf16<'py>(
     Ok((PyBytes::new(py, &u16_bytes(&dq)), PyBytes::new(py, &u16_bytes(&dk)), PyBytes::new(py, &u16_bytes(&dv))))
 }
 
+/// The allocator of the module's native code: "mimalloc" (the default) or "system"
+/// (`PARAFORMER_ALLOCATOR=system` in the environment before the import).
+///
+/// Returns:
+///     The allocator's name.
+#[pyfunction]
+#[pyo3(signature = ())]
+fn allocator() -> &'static str {
+    paraformer::allocator::name()
+}
+
 /// Whether this CPU runs `attention_forward_bf16` and `attention_backward_bf16` (AVX-512
 /// F, BW and BF16).
 ///
@@ -845,9 +856,15 @@ fn attention_bf16_available() -> bool {
     paraformer::attention_grad::available()
 }
 
+// mimalloc unless PARAFORMER_ALLOCATOR=system (paraformer::allocator): only the module's own
+// Rust allocations use it (benches/allocator_compare.py).
+#[global_allocator]
+static GLOBAL: paraformer::allocator::ProcessAllocator = paraformer::allocator::ProcessAllocator;
+
 /// The native core of the `paraformer` package.
 #[pymodule]
 fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    paraformer::allocator::check_env().map_err(to_py_err)?;
     m.add_class::<PyMatcher>()?;
     m.add_function(wrap_pyfunction!(flops, m)?)?;
     for f in [
@@ -868,6 +885,7 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(attention_forward_bf16, m)?,
         wrap_pyfunction!(attention_backward_bf16, m)?,
         wrap_pyfunction!(attention_bf16_available, m)?,
+        wrap_pyfunction!(allocator, m)?,
     ] {
         m.add_function(f)?;
     }

@@ -30,10 +30,13 @@
 //!
 //! Modules: [`matcher`] (load and run), [`xfeat`] (keypoints from images), [`geometry`]
 //! (RANSAC estimators), [`eval`] (ground truth, metrics, datasets), [`config`],
-//! [`weights`] (the strict loader), [`memory`] (the memory guard), [`error`].
+//! [`weights`] (the strict loader), [`memory`] (the memory guard), [`error`], and with the
+//! feature `mimalloc` the process allocator of the command and the Python module (`allocator`).
 
 #![warn(missing_docs)]
 
+#[cfg(feature = "mimalloc")]
+pub mod allocator;
 #[doc(hidden)]
 pub mod attention;
 #[doc(hidden)]
