@@ -137,17 +137,18 @@ unsafe fn scores_tile<const D: usize, const R: usize>(q: *const f32, bp: *const 
     }
 }
 
-/// `2^(s − max)` of row `s[..np]`, in place; returns the sum. Four vectors per step: the
+/// `2^(s − max)` of row `s[..np]`, in place; returns the sum and the max. Four vectors per step: the
 /// exponential is a chain of dependent operations, and independent chains side by side keep
 /// both FMA pipes busy.
 #[inline(always)]
-unsafe fn exp_row(s: *mut f32, np: usize) -> f32 {
+unsafe fn exp_row(s: *mut f32, np: usize) -> (f32, f32) {
     let (mut m0, mut m1) = (_mm256_set1_ps(f32::NEG_INFINITY), _mm256_set1_ps(f32::NEG_INFINITY));
     for c in (0..np).step_by(16) {
         m0 = _mm256_max_ps(m0, _mm256_loadu_ps(s.add(c)));
         m1 = _mm256_max_ps(m1, _mm256_loadu_ps(s.add(c + 8)));
     }
-    let m = _mm256_set1_ps(hmax(_mm256_max_ps(m0, m1)));
+    let top = hmax(_mm256_max_ps(m0, m1));
+    let m = _mm256_set1_ps(top);
     let mut sum = [_mm256_setzero_ps(); 4];
     let mut c = 0;
     while c + 32 <= np {
@@ -171,7 +172,7 @@ unsafe fn exp_row(s: *mut f32, np: usize) -> f32 {
             _mm256_storeu_ps(s.add(c + 8 * o), x);
         }
     }
-    hsum(_mm256_add_ps(_mm256_add_ps(sum[0], sum[1]), _mm256_add_ps(sum[2], sum[3])))
+    (hsum(_mm256_add_ps(_mm256_add_ps(sum[0], sum[1]), _mm256_add_ps(sum[2], sum[3]))), top)
 }
 
 /// `out[r][..D] = Σ_j p[r][j]·v[j][..D]` for 16 rows (`v` strided), in tiles of up to
@@ -214,15 +215,16 @@ unsafe fn values_tile<const R: usize>(p: *const f32, ld: usize, n: usize, v: *co
 }
 
 /// Softmax over the keys of the strip's rows and the value product: rows `r0..r0+rows`
-/// of columns `h·D..(h+1)·D` of `dst` (row stride `H·D`). Returns each row's `1/Σ`; `s`
-/// then holds the unnormalised probabilities.
+/// of columns `h·D..(h+1)·D` of `dst` (row stride `H·D`). Returns each row's `1/Σ` and
+/// maximum; `s` then holds the unnormalised probabilities `2^(s − max)`.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-unsafe fn strip_rows<const D: usize>(pk: &Packed, h: usize, r0: usize, rows: usize, s: &mut [f32], vp: &[f32], dst: SharedMut) -> [f32; STRIP] {
+unsafe fn strip_rows<const D: usize>(pk: &Packed, h: usize, r0: usize, rows: usize, s: &mut [f32], vp: &[f32], dst: SharedMut) -> ([f32; STRIP], [f32; STRIP]) {
     let (n, np, ld, c) = (pk.n, pk.np, pk.ld, pk.heads * D);
-    let mut inv = [0.0f32; STRIP];
-    for (r, iv) in inv.iter_mut().enumerate() {
-        *iv = 1.0 / exp_row(s.as_mut_ptr().add(r * ld), np);
+    let (mut inv, mut top) = ([0.0f32; STRIP], [0.0f32; STRIP]);
+    for r in 0..STRIP {
+        let (sum, mx) = exp_row(s.as_mut_ptr().add(r * ld), np);
+        (inv[r], top[r]) = (1.0 / sum, mx);
     }
     let mut out = [[0.0f32; 64]; STRIP];
     values::<D>(s.as_ptr(), ld, n, vp.as_ptr().add(h * n * D), D, &mut out);
@@ -232,7 +234,7 @@ unsafe fn strip_rows<const D: usize>(pk: &Packed, h: usize, r0: usize, rows: usi
             *row.add(t) = x * inv[r];
         }
     }
-    inv
+    (inv, top)
 }
 
 /// Scores of the 16 query rows from `r0` of head `h` into the strip `s`.
@@ -289,7 +291,7 @@ unsafe fn self_strip<const D: usize>(pk: &Packed, vp: &[f32], h: usize, st: usiz
     let r0 = st * STRIP;
     let rows = STRIP.min(pk.m - r0);
     strip_scores::<D>(pk, h, r0, s);
-    let inv = strip_rows::<D>(pk, h, r0, rows, s, vp, dst);
+    let (inv, _) = strip_rows::<D>(pk, h, r0, rows, s, vp, dst);
     for (r, iv) in inv.iter().enumerate().take(if cs.is_empty() { 0 } else { rows }) {
         for (a, e) in cs.iter_mut().zip(&s[r * pk.ld..r * pk.ld + pk.n]) {
             *a += e * iv;
@@ -324,17 +326,134 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
             let rows = (ch * rows_per_task, ((ch + 1) * rows_per_task).min(m));
             // SAFETY: AVX2 and FMA were checked on entry; task (h, ch) alone writes rows
             // ch·rows_per_task.. of columns h·d..(h+1)·d of `out_x`.
+            // The one-scale pass, or where a column's share fell too low for it, the exact
+            // pass with running column maxima (both write the same rows of `out_x`).
             unsafe {
                 match d {
-                    16 => cross_chunk::<16>(&pk, vx, &vyp, h, rows, dx),
-                    32 => cross_chunk::<32>(&pk, vx, &vyp, h, rows, dx),
-                    _ => cross_chunk::<64>(&pk, vx, &vyp, h, rows, dx),
+                    16 => cross_chunk_one_scale::<16>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<16>(&pk, vx, &vyp, h, rows, dx)),
+                    32 => cross_chunk_one_scale::<32>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<32>(&pk, vx, &vyp, h, rows, dx)),
+                    _ => cross_chunk_one_scale::<64>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<64>(&pk, vx, &vyp, h, rows, dx)),
                 }
             }
         })
         .collect();
     merge_columns(&states, heads, chunks, d, &mut out_y);
     Ok((out_x, out_y))
+}
+
+/// 2^−100: below this share of the task's largest score a column's sum would lose
+/// precision (or vanish) in [`cross_chunk_one_scale`], which then gives way to the exact pass.
+const ONE_SCALE_FLOOR: f32 = f32::from_bits((127 - 100) << 23);
+
+/// One task of the shared cross attention with one scale for every column: the row pass
+/// leaves `2^(s_ij − m_i)` in the strip (`m_i` the row's maximum), and since
+/// `2^(s_ij − g) = 2^(s_ij − m_i)·2^(m_i − g)` for the task's running maximum `g`, the column
+/// direction reuses those exponentials with `vx_i` scaled by `2^(m_i − g)`: no column maxima
+/// and no second exponential per score. Each column's sum and products are brought back to
+/// their own scale for [`merge_columns`] (by a power of two, exactly). `None` where a column's
+/// sum fell below [`ONE_SCALE_FLOOR`] (scores spread over more than ~100 binary orders, or
+/// not finite): the caller runs the exact [`cross_chunk`] instead.
+#[target_feature(enable = "avx2,fma")]
+unsafe fn cross_chunk_one_scale<const D: usize>(pk: &Packed, vx: View, vyp: &[f32], h: usize, (first, last): (usize, usize), dx: SharedMut) -> Option<ColumnState> {
+    let (n, np, ld) = (pk.n, pk.np, pk.ld);
+    let (mut sum, mut acc) = (vec![0.0f32; np], vec![0.0f32; np * D]);
+    let mut s = vec![0.0f32; STRIP * ld];
+    let mut g = NEG;
+    for r0 in (first..last).step_by(STRIP) {
+        let rows = STRIP.min(last - r0);
+        strip_scores::<D>(pk, h, r0, &mut s);
+        let (_, top) = strip_rows::<D>(pk, h, r0, rows, &mut s, vyp, dx);
+        let strip_top = top[..rows].iter().fold(NEG, |a, &b| a.max(b));
+        if strip_top > g {
+            // A larger maximum: what was summed so far moves to the new scale.
+            if g > NEG {
+                let f = (g - strip_top).exp2();
+                sum.iter_mut().chain(acc.iter_mut()).for_each(|x| *x *= f);
+            }
+            g = strip_top;
+        }
+        let mut w = [0.0f32; STRIP];
+        let mut xs = [[0.0f32; 64]; STRIP];
+        for r in 0..rows {
+            w[r] = (top[r] - g).exp2();
+            let row = std::slice::from_raw_parts(vx.data.as_ptr().add((r0 + r) * vx.stride + h * D), D);
+            for (x, v) in xs[r].iter_mut().zip(row) {
+                *x = v * w[r];
+            }
+        }
+        column_sums(s.as_ptr(), ld, np, rows, &w, &mut sum);
+        for j0 in (0..np).step_by(16) {
+            for c in (0..D).step_by(16) {
+                for (jt, cols) in TILES {
+                    let (ep, ap) = (s.as_ptr().add(j0 + jt), acc.as_mut_ptr().add((j0 + jt) * D + c));
+                    if cols == 6 {
+                        column_tile::<D, 6>(ep, ld, rows, xs.as_ptr().cast::<f32>().add(c), 64, ap);
+                    } else {
+                        column_tile::<D, 4>(ep, ld, rows, xs.as_ptr().cast::<f32>().add(c), 64, ap);
+                    }
+                }
+            }
+        }
+    }
+    let mut max = vec![g; n];
+    for j in 0..n {
+        // `!(x >= floor)` also catches NaN.
+        if !(sum[j] >= ONE_SCALE_FLOOR) {
+            return None;
+        }
+        // The sum's binary exponent e: sum and products times 2^−e, the maximum g + e.
+        let e = ((sum[j].to_bits() >> 23) & 0xff) as i32 - 127;
+        let scale = f32::from_bits(((127 - e) as u32) << 23);
+        sum[j] *= scale;
+        acc[j * D..(j + 1) * D].iter_mut().for_each(|a| *a *= scale);
+        max[j] = g + e as f32;
+    }
+    sum.truncate(n);
+    acc.truncate(n * D);
+    Some(ColumnState { max, sum, acc })
+}
+
+/// Whether every task of [`cross_attention_shared`] on these inputs takes the one-scale
+/// pass (for the tests: each path must be seen to run).
+#[cfg(test)]
+pub(super) fn one_scale_holds(qx: View, ky: View, vx: View, vy: View, heads: usize) -> bool {
+    let (m, d) = (qx.rows, qx.cols / heads);
+    let pk = pack(qx, ky, heads, false);
+    let vyp = pack_values(vy, heads);
+    let mut scratch = Matrix::zeros(m, qx.cols);
+    let dx = SharedMut(scratch.data.as_mut_ptr());
+    let rows_per_task = CROSS_ROWS.max(m.div_ceil(CROSS_TASKS).div_ceil(STRIP) * STRIP);
+    (0..heads * m.div_ceil(rows_per_task)).all(|t| {
+        let (h, ch) = (t % heads, t / heads);
+        let rows = (ch * rows_per_task, ((ch + 1) * rows_per_task).min(m));
+        // SAFETY: the tests call this only where AVX2 and FMA are present.
+        unsafe {
+            match d {
+                16 => cross_chunk_one_scale::<16>(&pk, vx, &vyp, h, rows, dx).is_some(),
+                32 => cross_chunk_one_scale::<32>(&pk, vx, &vyp, h, rows, dx).is_some(),
+                _ => cross_chunk_one_scale::<64>(&pk, vx, &vyp, h, rows, dx).is_some(),
+            }
+        }
+    })
+}
+
+/// `sum_j += Σ_r e[r][j]·w_r` for the `rows` rows of the strip (row stride `ld`), 32 columns
+/// per step: four independent chains of FMAs.
+#[inline(always)]
+unsafe fn column_sums(e: *const f32, ld: usize, np: usize, rows: usize, w: &[f32; STRIP], sum: &mut [f32]) {
+    for j in (0..np).step_by(32) {
+        let sp = sum.as_mut_ptr().add(j);
+        let mut a = [_mm256_loadu_ps(sp), _mm256_loadu_ps(sp.add(8)), _mm256_loadu_ps(sp.add(16)), _mm256_loadu_ps(sp.add(24))];
+        for (r, &wr) in w.iter().enumerate().take(rows) {
+            let (x, er) = (_mm256_set1_ps(wr), e.add(r * ld + j));
+            for (o, av) in a.iter_mut().enumerate() {
+                *av = _mm256_fmadd_ps(_mm256_loadu_ps(er.add(8 * o)), x, *av);
+            }
+        }
+        for (o, av) in a.iter().enumerate() {
+            _mm256_storeu_ps(sp.add(8 * o), *av);
+        }
+    }
 }
 
 /// One task of the shared cross attention: rows `first..last` of head `h`; returns its
@@ -417,26 +536,28 @@ unsafe fn column_values<const D: usize>(s: *const f32, np: usize, ld: usize, row
         for c in (0..D).step_by(16) {
             for (jt, cols) in TILES {
                 let acc = st.acc.as_mut_ptr().add((j0 + jt) * D + c);
+                let ep = e.as_ptr().cast::<f32>().add(jt);
                 if cols == 6 {
-                    column_tile::<D, 6>(&e, jt, rows, vx.add(c), vx_stride, acc);
+                    column_tile::<D, 6>(ep, 16, rows, vx.add(c), vx_stride, acc);
                 } else {
-                    column_tile::<D, 4>(&e, jt, rows, vx.add(c), vx_stride, acc);
+                    column_tile::<D, 4>(ep, 16, rows, vx.add(c), vx_stride, acc);
                 }
             }
         }
     }
 }
 
-/// `C` columns from `jt` × 16 channels of [`column_values`]: `acc[jj] += Σ_r e[r][jt+jj]·vx_r`
-/// (`acc` at column `jt`, channel block start; row stride `D`).
+/// `C` columns × 16 channels of the column products: `acc[jj] += Σ_r e[r][jj]·vx_r` (`e`
+/// at the tile's first column, row stride `e_ld`; `acc` at that column's channel block,
+/// row stride `D`).
 #[inline(always)]
-unsafe fn column_tile<const D: usize, const C: usize>(e: &[[f32; 16]; STRIP], jt: usize, rows: usize, vx: *const f32, vx_stride: usize, acc: *mut f32) {
+unsafe fn column_tile<const D: usize, const C: usize>(e: *const f32, e_ld: usize, rows: usize, vx: *const f32, vx_stride: usize, acc: *mut f32) {
     let mut t = [[_mm256_setzero_ps(); 2]; C];
-    for (r, er) in e.iter().enumerate().take(rows) {
-        let vp = vx.add(r * vx_stride);
+    for r in 0..rows {
+        let (vp, er) = (vx.add(r * vx_stride), e.add(r * e_ld));
         let (v0, v1) = (_mm256_loadu_ps(vp), _mm256_loadu_ps(vp.add(8)));
         for (jj, a) in t.iter_mut().enumerate() {
-            let x = _mm256_broadcast_ss(&er[jt + jj]);
+            let x = _mm256_broadcast_ss(&*er.add(jj));
             a[0] = _mm256_fmadd_ps(x, v0, a[0]);
             a[1] = _mm256_fmadd_ps(x, v1, a[1]);
         }
@@ -476,6 +597,30 @@ mod tests {
             assert!(max_diff(&wx.data, &gx.data) < 2e-6, "cross x {m}×{n}: {}", max_diff(&wx.data, &gx.data));
             assert!(max_diff(&wy.data, &gy.data) < 2e-6, "cross y {m}×{n}: {}", max_diff(&wy.data, &gy.data));
         }
+    }
+
+    /// The shared cross attention's one-scale pass and its exact fallback: ordinary scores
+    /// take the first, one query row with scores ~300 binary orders above the rest (so some
+    /// columns' share falls under 2^−100) the second; both match the general path.
+    #[test]
+    fn avx2_cross_attention_falls_back_where_one_scale_cannot_hold() {
+        if crate::kernels::simd_level() < 3 {
+            eprintln!("skipped: no AVX2 and FMA here");
+            return;
+        }
+        let (m, n, c, heads) = (300, 200, 64, 2);
+        let (ky, vx, vy) = (random(n, c, 5, 2.0), random(m, c, 4, 1.0), random(n, c, 3, 1.0));
+        let mut q = random(m, c, 1, 2.0);
+        let ordinary = super::x86::one_scale_holds(q.view(), ky.view(), vx.view(), vy.view(), heads);
+        for x in &mut q.data[7 * c..8 * c] {
+            *x *= 60.0;
+        }
+        let spread = super::x86::one_scale_holds(q.view(), ky.view(), vx.view(), vy.view(), heads);
+        assert!(ordinary && !spread, "one scale holds: ordinary {ordinary}, spread {spread}");
+        let (wx, wy) = general_cross(&general(), q.view(), ky.view(), vx.view(), vy.view(), heads).expect("general");
+        let (gx, gy) = super::cross_attention_shared(q.view(), ky.view(), vx.view(), vy.view(), heads).expect("avx2");
+        assert!(max_diff(&wx.data, &gx.data) < 2e-6, "cross x: {}", max_diff(&wx.data, &gx.data));
+        assert!(max_diff(&wy.data, &gy.data) < 2e-6, "cross y: {}", max_diff(&wy.data, &gy.data));
     }
 
     /// Head widths the kernels do not serve, and mismatched shapes, are errors.
@@ -537,3 +682,4 @@ mod tests {
         assert!(run(1) == run(3));
     }
 }
+
