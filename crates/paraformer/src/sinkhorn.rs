@@ -34,6 +34,11 @@ impl KernelStore for f32 {
             // SAFETY: AVX-512F and FMA checked just above; slices sized by `len`.
             return unsafe { sweep_f32_pairs(k, a, mu, b, acc, c) };
         }
+        #[cfg(target_arch = "x86_64")]
+        if crate::kernels::simd_level() == 3 {
+            // SAFETY: AVX2 and FMA checked just above; slices sized by `len`.
+            return unsafe { sweep_f32_pairs_avx2(k, a, mu, b, acc, c) };
+        }
         for ((ai, kr), mui) in a.iter_mut().zip(k.chunks_exact(c)).zip(mu) {
             *ai = mui / dot(kr, b);
             axpy(*ai, kr, acc);
@@ -108,6 +113,80 @@ unsafe fn sweep_f32_pairs(k: &[f32], a: &mut [f32], mu: &[f32], b: &[f32], acc: 
             let x = |p: *const f32| _mm512_maskz_loadu_ps(tail, p);
             let y = update(x(yp.add(full)), x(k0.add(full)), x(k1.add(full)));
             _mm512_mask_storeu_ps(yp.add(full), tail, y);
+        }
+        i += 2;
+    }
+}
+
+/// [`sweep_f32_pairs`] for AVX2 and FMA (8 lanes; the column tail past a multiple of 8 in
+/// scalar FMAs). The portable row-by-row sweep it replaces there ran one row's product as
+/// two FMA chains, bound by their latency, and loaded and stored `acc` once per row.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn sweep_f32_pairs_avx2(k: &[f32], a: &mut [f32], mu: &[f32], b: &[f32], acc: &mut [f32], c: usize) {
+    use std::arch::x86_64::*;
+    #[inline(always)]
+    unsafe fn hsum(v: __m256) -> f32 {
+        let m = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+        let m = _mm_add_ps(m, _mm_movehl_ps(m, m));
+        _mm_cvtss_f32(_mm_add_ss(m, _mm_shuffle_ps::<1>(m, m)))
+    }
+    let rows = a.len().min(k.len() / c.max(1));
+    let full = c / 8 * 8;
+    let bp = b.as_ptr();
+    let yp = acc.as_mut_ptr();
+    let mut i = 0;
+    while i < rows {
+        let two = i + 1 < rows;
+        let k0 = k.as_ptr().add(i * c);
+        // The second row of an odd last one is the first again, its result unused.
+        let k1 = if two { k0.add(c) } else { k0 };
+        let z = _mm256_setzero_ps();
+        let (mut d0, mut d0b, mut d1, mut d1b) = (z, z, z, z);
+        let mut j = 0;
+        while j + 16 <= full {
+            let (b0, b1) = (_mm256_loadu_ps(bp.add(j)), _mm256_loadu_ps(bp.add(j + 8)));
+            d0 = _mm256_fmadd_ps(_mm256_loadu_ps(k0.add(j)), b0, d0);
+            d0b = _mm256_fmadd_ps(_mm256_loadu_ps(k0.add(j + 8)), b1, d0b);
+            d1 = _mm256_fmadd_ps(_mm256_loadu_ps(k1.add(j)), b0, d1);
+            d1b = _mm256_fmadd_ps(_mm256_loadu_ps(k1.add(j + 8)), b1, d1b);
+            j += 16;
+        }
+        if j < full {
+            let b0 = _mm256_loadu_ps(bp.add(j));
+            d0 = _mm256_fmadd_ps(_mm256_loadu_ps(k0.add(j)), b0, d0);
+            d1 = _mm256_fmadd_ps(_mm256_loadu_ps(k1.add(j)), b0, d1);
+        }
+        let (mut t0, mut t1) = (hsum(_mm256_add_ps(d0, d0b)), hsum(_mm256_add_ps(d1, d1b)));
+        for j in full..c {
+            t0 = (*k0.add(j)).mul_add(*bp.add(j), t0);
+            t1 = (*k1.add(j)).mul_add(*bp.add(j), t1);
+        }
+        let a0 = mu[i] / t0;
+        a[i] = a0;
+        let a1 = if two {
+            a[i + 1] = mu[i + 1] / t1;
+            a[i + 1]
+        } else {
+            0.0
+        };
+        // acc + a_i K_i (+ a_i+1 K_i+1 when there is a second row).
+        let (v0, v1) = (_mm256_set1_ps(a0), _mm256_set1_ps(a1));
+        let mut j = 0;
+        while j < full {
+            let mut y = _mm256_fmadd_ps(v0, _mm256_loadu_ps(k0.add(j)), _mm256_loadu_ps(yp.add(j)));
+            if two {
+                y = _mm256_fmadd_ps(v1, _mm256_loadu_ps(k1.add(j)), y);
+            }
+            _mm256_storeu_ps(yp.add(j), y);
+            j += 8;
+        }
+        for j in full..c {
+            let mut y = a0.mul_add(*k0.add(j), *yp.add(j));
+            if two {
+                y = a1.mul_add(*k1.add(j), y);
+            }
+            *yp.add(j) = y;
         }
         i += 2;
     }
@@ -496,12 +575,12 @@ fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32, ite
         assert!(worst < 2e-2, "max |Δ log P| = {worst}");
     }
 
-    /// The AVX-512 BF16 sweep against the portable one (odd rows, a column tail).
+    /// The AVX-512 and AVX2 pair sweeps against the portable one (odd rows, a column tail).
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn f32_pair_sweep_matches_the_row_by_row_sweep() {
-        if crate::kernels::simd_level() < 4 {
-            eprintln!("skipped: no AVX-512 here");
+        if crate::kernels::simd_level() < 3 {
+            eprintln!("skipped: no AVX2 here");
             return;
         }
         // Odd row counts (a last row without a partner) and widths around 16 and 32.
@@ -514,7 +593,16 @@ fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32, ite
                 *ai = mui / kr.iter().zip(&b).map(|(x, y)| x * y).sum::<f32>();
                 acc0.iter_mut().zip(kr).for_each(|(y, x)| *y += *ai * x);
             }
-            // SAFETY: AVX-512 checked above; slices sized for `rows × c`.
+            let (mut a2, mut acc2) = (vec![0.0f32; rows], vec![0.5f32; c]);
+            // SAFETY: AVX2 and FMA checked above; slices sized for `rows × c`.
+            unsafe { sweep_f32_pairs_avx2(&k, &mut a2, &mu, &b, &mut acc2, c) };
+            for (x, y) in a0.iter().zip(&a2).chain(acc0.iter().zip(&acc2)) {
+                assert!((x - y).abs() <= 1e-5 * x.abs(), "AVX2 {rows}×{c}: {x} vs {y}");
+            }
+            if crate::kernels::simd_level() < 4 {
+                continue;
+            }
+            // SAFETY: AVX-512 checked just above; slices sized for `rows × c`.
             unsafe { sweep_f32_pairs(&k, &mut a1, &mu, &b, &mut acc1, c) };
             for (x, y) in a0.iter().zip(&a1).chain(acc0.iter().zip(&acc1)) {
                 assert!((x - y).abs() <= 1e-5 * x.abs(), "{rows}×{c}: {x} vs {y}");
