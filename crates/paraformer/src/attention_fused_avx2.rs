@@ -397,8 +397,7 @@ unsafe fn cross_chunk_one_scale<const D: usize>(pk: &Packed, vx: View, vyp: &[f3
     }
     let mut max = vec![g; n];
     for j in 0..n {
-        // `!(x >= floor)` also catches NaN.
-        if !(sum[j] >= ONE_SCALE_FLOOR) {
+        if sum[j].is_nan() || sum[j] < ONE_SCALE_FLOOR {
             return None;
         }
         // The sum's binary exponent e: sum and products times 2^−e, the maximum g + e.
