@@ -72,6 +72,30 @@ pub(crate) const CROSS_ROWS: usize = 256;
 /// At most this many cross-attention tasks per head: each holds an `N × d` column state
 /// until the merge, so larger inputs get more rows per task (a function of `M` only).
 pub(crate) const CROSS_TASKS: usize = 8;
+/// The shared cross attention's split of `M` query rows into tasks per head: a whole number
+/// of strips each, at least [`CROSS_ROWS`], at most [`CROSS_TASKS`] tasks (a function of `M` only).
+#[derive(Clone, Copy)]
+pub(crate) struct CrossTasks {
+    m: usize,
+    rows_per_task: usize,
+}
+
+impl CrossTasks {
+    pub(crate) fn new(m: usize) -> Self {
+        Self { m, rows_per_task: CROSS_ROWS.max(m.div_ceil(CROSS_TASKS).div_ceil(STRIP) * STRIP) }
+    }
+
+    /// Tasks per head.
+    pub(crate) fn chunks(self) -> usize {
+        self.m.div_ceil(self.rows_per_task)
+    }
+
+    /// Query rows `[start, end)` of task `ch`.
+    pub(crate) fn rows(self, ch: usize) -> (usize, usize) {
+        (ch * self.rows_per_task, ((ch + 1) * self.rows_per_task).min(self.m))
+    }
+}
+
 /// Start of a running column maximum: finite, so that `exp2(start − max)` is 0, not NaN.
 pub(crate) const NEG: f32 = -1e30;
 
@@ -533,16 +557,16 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
     let vy16 = if bf16 { pack_values_bf16(vy, heads) } else { Vec::new() };
     let vx16 = if bf16 { pack_values_bf16(vx, heads) } else { Vec::new() };
     let d = pk.d;
-    let rows_per_task = CROSS_ROWS.max(m.div_ceil(CROSS_TASKS).div_ceil(STRIP) * STRIP);
-    let chunks = m.div_ceil(rows_per_task);
+    let split = CrossTasks::new(m);
+    let chunks = split.chunks();
     let dx = SharedMut(out_x.data.as_mut_ptr());
     let states: Vec<ColumnState> = (0..heads * chunks)
         .into_par_iter()
         .map(|t| {
             let (h, ch) = (t % heads, t / heads);
             // SAFETY: AVX-512 (and BF16 for `bf16`) was checked on entry; task (h, ch)
-            // alone writes rows ch·rows_per_task.. of columns h·d..(h+1)·d of `out_x`.
-            let job = CrossJob { pk: &pk, vx, vy, vx16: &vx16, vy16: &vy16, h, rows: (ch * rows_per_task, ((ch + 1) * rows_per_task).min(m)), dx };
+            // alone writes rows `split.rows(ch)` of columns h·d..(h+1)·d of `out_x`.
+            let job = CrossJob { pk: &pk, vx, vy, vx16: &vx16, vy16: &vy16, h, rows: split.rows(ch), dx };
             unsafe {
                 match (d, bf16) {
                     (16, false) => cross_chunk_f32::<16>(&job),

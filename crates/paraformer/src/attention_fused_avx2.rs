@@ -18,7 +18,7 @@ use std::arch::x86_64::*;
 
 use rayon::prelude::*;
 
-use crate::attention_fused::x86::{merge_columns, pack, ColumnState, Packed, CROSS_ROWS, CROSS_TASKS, NEG, STRIP};
+use crate::attention_fused::x86::{merge_columns, pack, ColumnState, CrossTasks, Packed, NEG, STRIP};
 use crate::error::Result;
 use crate::kernels::{internal, sum_in_order, Matrix, SharedMut, View};
 
@@ -316,16 +316,16 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
     let pk = pack(qx, ky, heads, false);
     let vyp = pack_values(vy, heads);
     let d = pk.d;
-    let rows_per_task = CROSS_ROWS.max(m.div_ceil(CROSS_TASKS).div_ceil(STRIP) * STRIP);
-    let chunks = m.div_ceil(rows_per_task);
+    let split = CrossTasks::new(m);
+    let chunks = split.chunks();
     let dx = SharedMut(out_x.data.as_mut_ptr());
     let states: Vec<ColumnState> = (0..heads * chunks)
         .into_par_iter()
         .map(|t| {
             let (h, ch) = (t % heads, t / heads);
-            let rows = (ch * rows_per_task, ((ch + 1) * rows_per_task).min(m));
+            let rows = split.rows(ch);
             // SAFETY: AVX2 and FMA were checked on entry; task (h, ch) alone writes rows
-            // ch·rows_per_task.. of columns h·d..(h+1)·d of `out_x`.
+            // `rows` of columns h·d..(h+1)·d of `out_x`.
             // The one-scale pass, or where a column's share fell too low for it, the exact
             // pass with running column maxima (both write the same rows of `out_x`).
             unsafe {
@@ -421,10 +421,10 @@ pub(super) fn one_scale_holds(qx: View, ky: View, vx: View, vy: View, heads: usi
     let vyp = pack_values(vy, heads);
     let mut scratch = Matrix::zeros(m, qx.cols);
     let dx = SharedMut(scratch.data.as_mut_ptr());
-    let rows_per_task = CROSS_ROWS.max(m.div_ceil(CROSS_TASKS).div_ceil(STRIP) * STRIP);
-    (0..heads * m.div_ceil(rows_per_task)).all(|t| {
+    let split = CrossTasks::new(m);
+    (0..heads * split.chunks()).all(|t| {
         let (h, ch) = (t % heads, t / heads);
-        let rows = (ch * rows_per_task, ((ch + 1) * rows_per_task).min(m));
+        let rows = split.rows(ch);
         // SAFETY: the tests call this only where AVX2 and FMA are present.
         unsafe {
             match d {
