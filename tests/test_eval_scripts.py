@@ -166,7 +166,13 @@ def test_evaluate_matcher_spec_overrides_and_names_bad_ones(tmp_path):
     assert ev.matcher_spec(f"a={w}") == ("a", str(w), {})
     assert ev.matcher_spec(f"a={w}@0.5") == ("a", str(w), {"match_threshold": 0.5})
     assert ev.matcher_spec(f"b c={w}@0.3:50") == ("b c", str(w), {"match_threshold": 0.3, "sinkhorn_iterations": 50})
-    for bad, what in ((f"a={tmp_path / 'none.safetensors'}", "existing weights file"), (f"={w}", "LABEL=FILE"),
+    # A label holding "=" splits where the rest names the file; a path holding "=" still works.
+    assert ev.matcher_spec(f"α=0.5 line={w}@0.5") == ("α=0.5 line", str(w), {"match_threshold": 0.5})
+    (tmp_path / "lr=1e-4").mkdir()
+    w2 = tmp_path / "lr=1e-4" / "w.safetensors"
+    w2.write_bytes(b"x")
+    assert ev.matcher_spec(f"a={w2}") == ("a", str(w2), {})
+    for bad, what in ((f"a={tmp_path / 'none.safetensors'}", "existing weights file"), (f"={w}", "LABEL=FILE"), (str(w), "LABEL=FILE"),
                       (f"a={w}@high", "threshold 'high'"), (f"a={w}@0.5:many", "iterations 'many'")):
         with pytest.raises(SystemExit, match=what):
             ev.matcher_spec(bad)

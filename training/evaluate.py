@@ -93,8 +93,13 @@ def previous_weights(rev: str, cache: str) -> list[tuple[str, str]]:
 
 
 def matcher_spec(spec: str) -> tuple[str, str, dict]:
-    """``LABEL=FILE[@THRESHOLD[:ITERATIONS]]`` → (label, path, config overrides)."""
-    label, sep, rest = spec.partition("=")
+    """``LABEL=FILE[@THRESHOLD[:ITERATIONS]]`` → (label, path, config overrides).
+
+    The label may itself hold ``=`` ("α=0.5 line"): the split is at the first ``=`` whose
+    remainder names an existing file, else at the first (and the error names the spec)."""
+    cuts = [i for i, c in enumerate(spec) if c == "="]
+    cut = next((i for i in cuts if os.path.isfile(spec[i + 1:].partition("@")[0])), cuts[0] if cuts else -1)
+    label, sep, rest = (spec[:cut], "=", spec[cut + 1:]) if cut >= 0 else (spec, "", "")
     path, _, setting = rest.partition("@")
     if not sep or not label or not os.path.isfile(path):
         sys.exit(f"error: --matcher {spec!r}: expected LABEL=FILE[@THRESHOLD[:ITERATIONS]] with an existing weights file")
