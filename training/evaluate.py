@@ -96,13 +96,11 @@ def matcher_spec(spec: str) -> tuple[str, str, dict]:
     """``LABEL=FILE[@THRESHOLD[:ITERATIONS]]`` → (label, path, config overrides).
 
     The label may itself hold ``=`` ("α=0.5 line"): the split is at the first ``=`` whose
-    remainder names an existing file, else at the first (and the error names the spec)."""
-    cuts = [i for i, c in enumerate(spec) if c == "="]
-    cut = next((i for i in cuts if os.path.isfile(spec[i + 1:].partition("@")[0])), cuts[0] if cuts else -1)
-    label, sep, rest = (spec[:cut], "=", spec[cut + 1:]) if cut >= 0 else (spec, "", "")
-    path, _, setting = rest.partition("@")
-    if not sep or not label or not os.path.isfile(path):
+    remainder names an existing file."""
+    cut = next((i for i, c in enumerate(spec) if c == "=" and os.path.isfile(spec[i + 1:].partition("@")[0])), None)
+    if cut is None or cut == 0:
         sys.exit(f"error: --matcher {spec!r}: expected LABEL=FILE[@THRESHOLD[:ITERATIONS]] with an existing weights file")
+    label, (path, _, setting) = spec[:cut], spec[cut + 1:].partition("@")
     override = {}
     if setting:
         thr, _, iters = setting.partition(":")
