@@ -93,12 +93,26 @@ def test_holdout_peers_mutual_nn_and_bad_arguments(tmp_path):
     weights.write_bytes(b"x")
     for args, needle in ((["--matcher", f"a={tmp_path / 'missing.safetensors'}"], "existing weights file"),
                          (["--matcher", f"={weights}"], "LABEL=FILE"),
-                         (["--matcher", f"a={weights}@high"], "not a number"),
+                         (["--matcher", f"a={weights}@high"], "threshold 'high'"),
+                         (["--matcher", f"a={weights}@0.5:many"], "iterations 'many'"),
                          (["--holdout", str(tmp_path / "none")], "no such folder"),
                          (["--blind-descriptors", "0"], "expected a probability in (0, 1]"),
                          (["--blind-descriptors", "1.2"], "--blind-descriptors 1.2")):
         out = subprocess.run([sys.executable, script, *args], capture_output=True, text=True)
         assert out.returncode != 0 and needle in out.stderr, (args, out.stderr)
+
+
+def test_match_residuals_names_bad_matcher_specs(tmp_path):
+    """match_residuals.py parses --matcher as evaluate.py does: each bad spec exits naming it."""
+    import subprocess
+
+    script = str(ROOT / "training" / "match_residuals.py")
+    weights = tmp_path / "w.safetensors"
+    weights.write_bytes(b"x")
+    for spec, needle in ((f"a={tmp_path / 'missing.safetensors'}", "existing weights file"), (f"={weights}", "LABEL=FILE"),
+                         (f"a={weights}@high", "threshold 'high'")):
+        out = subprocess.run([sys.executable, script, "--matcher", spec], capture_output=True, text=True)
+        assert out.returncode != 0 and needle in out.stderr and spec in out.stderr, (spec, out.stderr)
 
 
 def test_summarize_runs_table_and_bad_folders(tmp_path, capsys):

