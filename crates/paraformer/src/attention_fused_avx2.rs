@@ -45,7 +45,8 @@ fn pack_values(v: View, heads: usize) -> Vec<f32> {
 
 /// `2^x` to 2.4e-7 relative error (the degree-5 minimax of the AVX-512 kernels on
 /// [−½, ½]); 0 below −126.5 and at most 2^−126 below −126 (the AVX-512 kernels flush below
-/// −150), NaN stays NaN. Rounding by the 1.5·2^23 shift leaves the integer part in the low
+/// −150), NaN stays NaN; above 127 it saturates at about 2^127 instead of +∞ (the softmax
+/// passes only x ≤ 0, its scores less their row maximum). Rounding by the 1.5·2^23 shift leaves the integer part in the low
 /// mantissa bits, so no compare, round or conversion is needed: the softmax's exponentials
 /// were a third of the kernels' time.
 #[inline(always)]
@@ -640,7 +641,7 @@ mod tests {
             eprintln!("skipped: no AVX2 and FMA here");
             return;
         }
-        let xs: Vec<f32> = (0..4000).map(|i| -130.0 + i as f32 * 0.0331).chain([0.0, -126.0, -127.0, -1e30, f32::NEG_INFINITY, f32::NAN, 3.7, 127.0]).collect();
+        let xs: Vec<f32> = (0..4000).map(|i| -130.0 + i as f32 * 0.0331).chain([0.0, -126.0, -127.0, -1e30, f32::NEG_INFINITY, f32::NAN, 3.7, 127.0, 127.4, 200.0, f32::INFINITY]).collect();
         for chunk in xs.chunks(8) {
             let mut x = [0.0f32; 8];
             x[..chunk.len()].copy_from_slice(chunk);
@@ -650,6 +651,8 @@ mod tests {
             for (a, b) in x.iter().zip(&y) {
                 if a.is_nan() {
                     assert!(b.is_nan(), "2^NaN gave {b}");
+                } else if *a > 127.0 {
+                    assert!(b.is_finite() && *b >= 2f32.powi(127), "2^{a} saturates at 2^127: {b}");
                 } else if *a < -126.5 {
                     assert_eq!(*b, 0.0, "2^{a} is flushed to 0");
                 } else if *a < -126.0 {
