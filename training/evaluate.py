@@ -113,6 +113,14 @@ def matcher_spec(spec: str) -> tuple[str, str, dict]:
     return label, path, override
 
 
+def load_matcher(path: str, override: dict):
+    """The weights file's matcher with ``matcher_spec``'s config overrides applied."""
+    import paraformer
+
+    m = paraformer.Matcher.from_file(path)
+    return paraformer.Matcher(dict(m.config, **override), path) if override else m
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shared", default=os.path.join(ROOT, "..", "shared", "data"))
@@ -150,9 +158,7 @@ def main() -> None:
             print(f"skipping {label}: same file and settings as {seen[key]}", file=sys.stderr)
             continue
         seen[key] = label
-        m = paraformer.Matcher.from_file(path)
-        if override:
-            m = paraformer.Matcher(dict(m.config, **override), path)
+        m = load_matcher(path, override)
         matchers.append((label, lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
 
     sets = {"synthetic": synth_pairs(args.shared, args.cache, args.pairs),

@@ -53,7 +53,7 @@ def main() -> None:
                          "place among the others")
     ap.add_argument("--json")
     args = ap.parse_args()
-    from evaluate import matcher_spec
+    from evaluate import load_matcher, matcher_spec
 
     specs = [matcher_spec(spec) for spec in args.matcher]
     if args.blind_descriptors is not None and not 0 < args.blind_descriptors <= 1:
@@ -61,7 +61,6 @@ def main() -> None:
     if not os.path.isdir(args.holdout):
         sys.exit(f"error: --holdout {args.holdout}: no such folder (train.py builds it on its first validation)")
     os.environ.setdefault("RAYON_NUM_THREADS", str(args.threads))
-    import paraformer
     import torch
     from paraformer import geometry as g
     from paraformer_train import evalsets as ev
@@ -74,9 +73,8 @@ def main() -> None:
 
         matchers.append(("LighterGlue", lighterglue(args.threads)))
     for label, path, override in specs:
-        cfg = dict(paraformer.Matcher.from_file(path).config, **override)
-        m = paraformer.Matcher(cfg, path)
-        matchers.append((f"{label} (thr {cfg['match_threshold']:g}, {cfg['sinkhorn_iterations']} it)", lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
+        m = load_matcher(path, override)
+        matchers.append((f"{label} (thr {m.config['match_threshold']:g}, {m.config['sinkhorn_iterations']} it)", lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
     if args.shuffle_positions:
         matchers += [(f"{label}, positions shuffled", lambda f0, f1, m=m: m(shuffled(f0, 0), shuffled(f1, 1)))
                      for label, m in matchers[1:]]

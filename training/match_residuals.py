@@ -71,7 +71,6 @@ def main() -> None:
     ap.add_argument("--json")
     args = ap.parse_args()
     sys.path.insert(0, HERE)
-    import paraformer
     from paraformer import geometry as g
     from paraformer_train import evalsets as ev
 
@@ -81,12 +80,10 @@ def main() -> None:
 
         lg = lighterglue(2)
         matchers.append(("LighterGlue", lambda f0, f1: (lg(f0, f1), None)))
-    from evaluate import matcher_spec
+    from evaluate import load_matcher, matcher_spec
 
     for label, path, override in (matcher_spec(spec) for spec in args.matcher):
-        m = paraformer.Matcher.from_file(path)
-        if override:
-            m = paraformer.Matcher(dict(m.config, **override), path)
+        m = load_matcher(path, override)
 
         def run(f0, f1, m=m):
             out = m.match_dicts(f0, f1)

@@ -46,9 +46,9 @@ fn pack_values(v: View, heads: usize) -> Vec<f32> {
 /// `2^x` to 2.4e-7 relative error (the degree-5 minimax of the AVX-512 kernels on
 /// [−½, ½]); 0 below −126.5 and at most 2^−126 below −126 (the AVX-512 kernels flush below
 /// −150), NaN stays NaN; above 127 it saturates at about 2^127 instead of +∞ (the softmax
-/// passes only x ≤ 0, its scores less their row maximum). Rounding by the 1.5·2^23 shift leaves the integer part in the low
-/// mantissa bits, so no compare, round or conversion is needed: the softmax's exponentials
-/// were a third of the kernels' time.
+/// passes only x ≤ 0, its scores less their row maximum). Rounding by the 1.5·2^23 shift
+/// leaves the integer part in the low mantissa bits, so no compare, round or conversion is
+/// needed: the softmax's exponentials were a third of the kernels' time.
 #[inline(always)]
 unsafe fn exp2v(x: __m256) -> __m256 {
     const SHIFT: f32 = 12_582_912.0; // 1.5·2^23
