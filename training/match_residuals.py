@@ -71,6 +71,9 @@ def main() -> None:
     ap.add_argument("--json")
     args = ap.parse_args()
     sys.path.insert(0, HERE)
+    from evaluate import load_matcher, matcher_spec
+
+    specs = [matcher_spec(spec) for spec in args.matcher]  # bad specs exit here, before the torch-backed imports
     from paraformer import geometry as g
     from paraformer_train import evalsets as ev
 
@@ -80,9 +83,7 @@ def main() -> None:
 
         lg = lighterglue(2)
         matchers.append(("LighterGlue", lambda f0, f1: (lg(f0, f1), None)))
-    from evaluate import load_matcher, matcher_spec
-
-    for label, path, override in (matcher_spec(spec) for spec in args.matcher):
+    for label, path, override in specs:
         m = load_matcher(path, override)
 
         def run(f0, f1, m=m):
