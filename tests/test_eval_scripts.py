@@ -230,6 +230,17 @@ def test_plot_curves_run_offsets():
     for bad in ("runs/b=3k", "runs/b=-5", "=12"):
         with pytest.raises(SystemExit, match="RUN=PAIRS"):
             mod.parse_run(bad)
+    # --from-pairs compares against the shifted pairs
+    log = [{"pairs": p} for p in (0, 5000, 10000)]
+    assert [r["pairs"] for r in mod.visible(log, 0, 5000)] == [5000, 10000]
+    assert [r["pairs"] for r in mod.visible(log, 301000, 306000)] == [5000, 10000]
+    assert mod.visible(log, 0, 20000) == []
+    # a branch whose log copies the line's history is drawn from its branch point on
+    line = [{"pairs": p, "val_loss@512": v} for p, v in ((0, 1.0), (5000, 0.9), (10000, 0.8))]
+    branch = line[:2] + [{"pairs": 10000, "val_loss@512": 0.7}]
+    drawn = {(r["pairs"], r.get("val_loss@512"), r.get("val_loss@2048")) for r in line}
+    assert mod.own_rows(branch, drawn) == branch[1:]
+    assert mod.own_rows(line, drawn) == [] and mod.own_rows(line, set()) == line
 
 
 def test_malloc_reuse_probe_counts_faults_and_names_bad_sizes():

@@ -7,7 +7,9 @@ the last validation of each run.
         --summary training/results/config_comparison.json
 
 A run given as ``RUN=PAIRS`` is drawn shifted by PAIRS: a run started with ``train.py
---init`` from a checkpoint at PAIRS pairs counts its own pairs from 0.
+--init`` from a checkpoint at PAIRS pairs counts its own pairs from 0. ``--from-pairs N``
+draws only the validations at N pairs or later, to zoom on branches of a long line (a
+branch's log starts with a copy of its line's history).
 """
 from __future__ import annotations
 
@@ -37,25 +39,45 @@ def parse_run(text: str) -> tuple[str, int]:
     return run, pairs
 
 
+def visible(log: list[dict], offset: int, from_pairs: int) -> list[dict]:
+    """The validation rows of a run drawn at ``offset``, from ``from_pairs`` pairs on."""
+    return [r for r in log if r["pairs"] + offset >= from_pairs]
+
+
+def own_rows(log: list[dict], drawn: set) -> list[dict]:
+    """A branch's rows without the history it shares with a run drawn before it (its log
+    starts with a copy of that run's), keeping the branch point so the curve joins it."""
+    key = lambda r: (r["pairs"], r.get("val_loss@512"), r.get("val_loss@2048"))
+    first = next((i for i, r in enumerate(log) if key(r) not in drawn), len(log))
+    return log[max(first - 1, 0):] if first < len(log) else []
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", help="run folders (log.jsonl), each RUN or RUN=PAIRS (drawn from PAIRS on)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--summary", default=None)
+    ap.add_argument("--from-pairs", type=int, default=0, help="draw validations at this many pairs or later")
     args = ap.parse_args()
+    if args.from_pairs < 0:
+        ap.error(f"--from-pairs {args.from_pairs}: expected a number of pairs >= 0")
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     panels = [("val_loss@512", "val loss @512"), ("val_loss@2048", "val loss @2048"), ("f1@512", "F1 @512"),
-              ("f1@2048", "F1 @2048"), ("auc5px@2048", "H AUC@5px @2048"), ("precision@2048", "precision @2048")]
-    fig, axes = plt.subplots(2, 3, figsize=(13, 7))
+              ("f1@2048", "F1 @2048"), ("auc5px@2048", "H AUC@5px @2048"), ("precision@2048", "precision @2048"),
+              ("val_loss_real@2048", "real val loss @2048"), ("f1_real@2048", "real F1 @2048")]
+    fig, axes = plt.subplots(2, 4, figsize=(17, 7))
     summary = {}
     # tab20 rather than the default 10-colour cycle, so that up to 20 runs keep distinct colours
     colours = plt.get_cmap("tab20").colors
+    drawn = set()
     for index, (run, offset) in enumerate(parse_run(r) for r in args.runs):
-        log = read_log(run)
+        full = read_log(run)
+        log = visible(own_rows(full, drawn), offset, args.from_pairs)
+        drawn |= {(r["pairs"], r.get("val_loss@512"), r.get("val_loss@2048")) for r in full}
         if not log:
             continue
         name = os.path.basename(os.path.normpath(run))
@@ -64,10 +86,13 @@ def main() -> None:
         x = [r["pairs"] + offset for r in log]
         for ax, (key, title) in zip(axes.ravel(), panels):
             ys = [r.get(key) for r in log]
+            if all(y is None for y in ys):  # older runs have no real-pair validation
+                continue
             ax.plot(x, ys, marker="o", ms=3, label=name, color=colours[index % len(colours)])
-            ax.set_title(title)
-            ax.set_xlabel("training pairs seen")
-            ax.grid(alpha=0.3)
+    for ax, (_, title) in zip(axes.ravel(), panels):
+        ax.set_title(title)
+        ax.set_xlabel("training pairs seen")
+        ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
