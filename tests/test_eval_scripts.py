@@ -219,7 +219,7 @@ def test_config_latency_parses_paraformer_and_u_configs():
         sys.path.remove(str(ROOT / "training"))
 
 
-def test_plot_curves_run_offsets():
+def test_plot_curves_run_offsets(tmp_path):
     """plot_curves.py: ``RUN=PAIRS`` shifts a run that started from --init weights; a bad
     offset is named."""
     import pytest
@@ -241,6 +241,19 @@ def test_plot_curves_run_offsets():
     drawn = {(r["pairs"], r.get("val_loss@512"), r.get("val_loss@2048")) for r in line}
     assert mod.own_rows(branch, drawn) == branch[1:]
     assert mod.own_rows(line, drawn) == [] and mod.own_rows(line, set()) == line
+    # a run is a folder with log.jsonl or a bare .jsonl of validation rows
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "log.jsonl").write_text('{"pairs": 1}\n\n{"pairs": 2}\n')
+    (tmp_path / "rows.jsonl").write_text('{"pairs": 3}\n')
+    assert mod.read_log(str(tmp_path / "run")) == [{"pairs": 1}, {"pairs": 2}]
+    assert mod.read_log(str(tmp_path / "rows.jsonl")) == [{"pairs": 3}]
+    assert mod.read_log(str(tmp_path / "absent")) == []
+    # runs without rows are named; none at all is an error before anything is drawn
+    import subprocess
+    out = subprocess.run([sys.executable, str(ROOT / "training" / "plot_curves.py"), str(tmp_path / "absent"),
+                          "--out", str(tmp_path / "c.png")], capture_output=True, text=True)
+    assert out.returncode == 2 and "absent: no log.jsonl" in out.stderr and "none of the runs" in out.stderr
+    assert not (tmp_path / "c.png").exists()
 
 
 def test_malloc_reuse_probe_counts_faults_and_names_bad_sizes():

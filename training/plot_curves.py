@@ -16,10 +16,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 
 def read_log(run: str) -> list[dict]:
-    path = os.path.join(run, "log.jsonl")
+    """The rows of RUN/log.jsonl, or of RUN itself when it is a .jsonl file (a run whose
+    folder was not kept, only its validation rows)."""
+    path = run if run.endswith(".jsonl") and os.path.isfile(run) else os.path.join(run, "log.jsonl")
     if not os.path.exists(path):
         return []
     return [json.loads(line) for line in open(path) if line.strip()]
@@ -54,13 +57,26 @@ def own_rows(log: list[dict], drawn: set) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("runs", nargs="+", help="run folders (log.jsonl), each RUN or RUN=PAIRS (drawn from PAIRS on)")
+    ap.add_argument("runs", nargs="+", help="run folders (log.jsonl) or .jsonl files, each RUN or RUN=PAIRS (drawn from PAIRS on)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--summary", default=None)
     ap.add_argument("--from-pairs", type=int, default=0, help="draw validations at this many pairs or later")
     args = ap.parse_args()
     if args.from_pairs < 0:
         ap.error(f"--from-pairs {args.from_pairs}: expected a number of pairs >= 0")
+    # which rows each run draws: read first, so bad runs are named before matplotlib loads
+    curves, drawn = [], set()
+    for index, (run, offset) in enumerate(parse_run(r) for r in args.runs):
+        full = read_log(run)
+        if not full:
+            print(f"{run}: no log.jsonl with validation rows, skipped", file=sys.stderr)
+        log = visible(own_rows(full, drawn), offset, args.from_pairs)
+        drawn |= {(r["pairs"], r.get("val_loss@512"), r.get("val_loss@2048")) for r in full}
+        if log:
+            curves.append((index, run, offset, log))
+    if not curves:
+        print("error: none of the runs has validation rows to draw", file=sys.stderr)
+        raise SystemExit(2)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -73,18 +89,12 @@ def main() -> None:
     summary = {}
     # tab20 rather than the default 10-colour cycle, so that up to 20 runs keep distinct colours
     colours = plt.get_cmap("tab20").colors
-    drawn = set()
-    for index, (run, offset) in enumerate(parse_run(r) for r in args.runs):
-        full = read_log(run)
-        log = visible(own_rows(full, drawn), offset, args.from_pairs)
-        drawn |= {(r["pairs"], r.get("val_loss@512"), r.get("val_loss@2048")) for r in full}
-        if not log:
-            continue
-        name = os.path.basename(os.path.normpath(run))
+    for index, run, offset, log in curves:
+        name = os.path.basename(os.path.normpath(run)).removesuffix(".jsonl")
         cfg = json.load(open(os.path.join(run, "config.json"))) if os.path.exists(os.path.join(run, "config.json")) else {}
         summary[name] = {"last": log[-1], "args": cfg.get("args", {})}
         x = [r["pairs"] + offset for r in log]
-        for ax, (key, title) in zip(axes.ravel(), panels):
+        for ax, (key, _) in zip(axes.ravel(), panels):
             ys = [r.get(key) for r in log]
             if all(y is None for y in ys):  # older runs have no real-pair validation
                 continue
