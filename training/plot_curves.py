@@ -85,7 +85,7 @@ def main() -> None:
     panels = [("val_loss@512", "val loss @512"), ("val_loss@2048", "val loss @2048"), ("f1@512", "F1 @512"),
               ("f1@2048", "F1 @2048"), ("auc5px@2048", "H AUC@5px @2048"), ("precision@2048", "precision @2048"),
               ("val_loss_real@2048", "real val loss @2048"), ("f1_real@2048", "real F1 @2048")]
-    fig, axes = plt.subplots(2, 4, figsize=(17, 7))
+    fig, axes = plt.subplots(2, 4, figsize=(21, 7))
     summary = {}
     # tab20 rather than the default 10-colour cycle, so that up to 20 runs keep distinct colours
     colours = plt.get_cmap("tab20").colors
@@ -103,8 +103,10 @@ def main() -> None:
         ax.set_title(title)
         ax.set_xlabel("training pairs seen")
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    fig.tight_layout()
+    # one legend beside the panels, so that it hides no curve
+    handles = {label: h for ax in axes.ravel() for h, label in zip(*ax.get_legend_handles_labels())}
+    fig.legend(list(handles.values()), list(handles), loc="center right", fontsize=8)
+    fig.tight_layout(rect=(0, 0, 0.8, 1))
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     fig.savefig(args.out, dpi=90)
     if args.summary:
