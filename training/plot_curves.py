@@ -47,11 +47,15 @@ def visible(log: list[dict], offset: int, from_pairs: int) -> list[dict]:
     return [r for r in log if r["pairs"] + offset >= from_pairs]
 
 
+def row_key(r: dict) -> tuple:
+    """What identifies a validation row across runs: a branch's log repeats its line's rows."""
+    return r["pairs"], r.get("val_loss@512"), r.get("val_loss@2048")
+
+
 def own_rows(log: list[dict], drawn: set) -> list[dict]:
     """A branch's rows without the history it shares with a run drawn before it (its log
     starts with a copy of that run's), keeping the branch point so the curve joins it."""
-    key = lambda r: (r["pairs"], r.get("val_loss@512"), r.get("val_loss@2048"))
-    first = next((i for i, r in enumerate(log) if key(r) not in drawn), len(log))
+    first = next((i for i, r in enumerate(log) if row_key(r) not in drawn), len(log))
     return log[max(first - 1, 0):] if first < len(log) else []
 
 
@@ -71,7 +75,7 @@ def main() -> None:
         if not full:
             print(f"{run}: no log.jsonl with validation rows, skipped", file=sys.stderr)
         log = visible(own_rows(full, drawn), offset, args.from_pairs)
-        drawn |= {(r["pairs"], r.get("val_loss@512"), r.get("val_loss@2048")) for r in full}
+        drawn |= {row_key(r) for r in full}
         if log:
             curves.append((index, run, offset, log))
     if not curves:
