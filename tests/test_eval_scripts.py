@@ -1,13 +1,46 @@
 """The pure helpers of the evaluation scripts: the reconstruction table and the calibration's
-match precision (numbers a README and a shipping decision are built from)."""
+match precision (numbers a README and a shipping decision are built from).
+
+CI has no torch, so every test here runs as CI would even where torch is installed: torch
+is blocked in this process and in the scripts' subprocesses, except for tests marked
+``needs_torch``. A torch-only import in a torch-free script then fails here, not only in CI."""
 import importlib.util
 import re
 import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def torch_blocker(tmp_path_factory) -> Path:
+    """A folder whose ``torch`` package raises on import, for subprocesses' PYTHONPATH."""
+    root = tmp_path_factory.mktemp("no_torch")
+    (root / "torch").mkdir()
+    (root / "torch" / "__init__.py").write_text(
+        'raise ModuleNotFoundError("No module named \'torch\' (blocked: CI has no torch)", name="torch")\n')
+    return root
+
+
+@pytest.fixture(autouse=True)
+def without_torch(request, monkeypatch, torch_blocker):
+    if request.node.get_closest_marker("needs_torch"):
+        return
+    monkeypatch.setitem(sys.modules, "torch", None)  # `import torch` raises ModuleNotFoundError here
+    import os
+    path = os.environ.get("PYTHONPATH")
+    monkeypatch.setenv("PYTHONPATH", str(torch_blocker) + (os.pathsep + path if path else ""))
+
+
+def test_torch_is_blocked_here_and_in_subprocesses():
+    import subprocess
+    with pytest.raises(ModuleNotFoundError):
+        import torch  # noqa: F401
+    out = subprocess.run([sys.executable, "-c", "import torch"], capture_output=True, text=True)
+    assert out.returncode != 0 and "blocked: CI has no torch" in out.stderr
 
 
 def load(path: Path, name: str):
@@ -160,8 +193,6 @@ def test_holdout_peers_shuffles_positions_only():
 def test_evaluate_names_the_unbuilt_cli(tmp_path, monkeypatch):
     """A fresh clone has no target/release/paraformer: the synthetic set's generation says
     which binary is missing and how to build it, not a bare FileNotFoundError."""
-    import pytest
-
     ev = load(ROOT / "training" / "evaluate.py", "evaluate_cli_check")
     monkeypatch.setattr(ev, "ROOT", str(tmp_path))
     with pytest.raises(SystemExit, match=r"cargo build --release -p paraformer-cli") as err:
@@ -172,8 +203,6 @@ def test_evaluate_names_the_unbuilt_cli(tmp_path, monkeypatch):
 def test_evaluate_matcher_spec_overrides_and_names_bad_ones(tmp_path):
     """``LABEL=FILE[@THRESHOLD[:ITERATIONS]]``: the overrides parse; a missing file, a
     non-number threshold and a non-integer iteration count each exit naming the spec."""
-    import pytest
-
     ev = load(ROOT / "training" / "evaluate.py", "evaluate_spec_check")
     w = tmp_path / "w.safetensors"
     w.write_bytes(b"x")
@@ -192,12 +221,11 @@ def test_evaluate_matcher_spec_overrides_and_names_bad_ones(tmp_path):
             ev.matcher_spec(bad)
 
 
+@pytest.mark.needs_torch
 def test_config_latency_parses_paraformer_and_u_configs():
     """benches/config_latency.py: ``NAME=[u:]DIM,HEADS,DEPTH[,SWITCH...]`` gives the config
     train.py trains, ``u:`` the ParaFormer-U of that outer width; bad specs exit with the
     spec and the rule named (it builds configs with training/train.py, so it needs torch)."""
-    import pytest
-
     pytest.importorskip("torch", reason="torch not installed: config_latency.py builds configs with train.py")
     sys.path.insert(0, str(ROOT / "training"))
     try:
@@ -222,8 +250,6 @@ def test_config_latency_parses_paraformer_and_u_configs():
 def test_plot_curves_run_offsets(tmp_path):
     """plot_curves.py: ``RUN=PAIRS`` shifts a run that started from --init weights; a bad
     offset is named."""
-    import pytest
-
     mod = load(ROOT / "training" / "plot_curves.py", "plot_curves")
     assert mod.parse_run("training/checkpoints/a") == ("training/checkpoints/a", 0)
     assert mod.parse_run("runs/x=y/b=301000") == ("runs/x=y/b", 301000)
