@@ -183,3 +183,23 @@ def test_features_file_round_trip(tmp_path):
     paraformer.features.write_h5(str(tmp_path / "f.h5"), feats)
     h5 = paraformer.features.read_h5(str(tmp_path / "f.h5"))
     np.testing.assert_allclose(h5["a.png"]["descriptors"], feats["a.png"]["descriptors"], rtol=1e-6)
+
+
+def test_complex_input_is_named_not_truncated():
+    """A complex array would lose its imaginary part in a float cast: each entry point names it instead."""
+    import paraformer
+    from paraformer import geometry as g
+
+    pts = np.random.default_rng(0).uniform(0, 100, (8, 2))
+    cases = [(lambda: g.find_homography(pts.astype(np.complex128), pts), "points0"),
+             (lambda: g.find_relative_pose(pts, pts, np.eye(3) * (1 + 1j), np.eye(3)), "K0"),
+             (lambda: g.homography_corner_error(np.eye(3), np.eye(3, dtype=np.complex64), 640, 480), "H_gt"),
+             (lambda: g.match_baseline(np.ones((4, 8), np.complex64), np.ones((4, 8), np.float32)), "desc0"),
+             (lambda: g.mma(np.eye(3) + 0j, pts, pts, np.arange(8)), "H")]
+    for call, name in cases:
+        with pytest.raises(ValueError, match=rf"^{name}: expected a real .*complex"):
+            call()
+    k = np.zeros((2, 2), np.float32)
+    d = np.zeros((2, 64), np.float32)
+    with pytest.raises(ValueError, match=r"^size0: "):
+        paraformer.Matcher.pretrained("paraformer-xfeat").match(k, d, k, d, size0=(640 + 1j, 480), size1=(640, 480))

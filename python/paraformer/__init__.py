@@ -64,6 +64,8 @@ def _image(i: int, kpts: ArrayLike, desc: ArrayLike, scores: ArrayLike | None, s
         if s.shape != (n,):
             raise ValueError(f"scores{i}: expected shape [{n}], got {list(s.shape)}")
     try:
+        if np.iscomplexobj(size):
+            raise TypeError("complex")
         sz = np.asarray(size, dtype=np.float64).reshape(-1)
     except (ValueError, TypeError):
         raise ValueError(f"size{i}: expected (width, height), got {size!r}") from None

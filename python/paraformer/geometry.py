@@ -16,11 +16,23 @@ __all__ = ["find_homography", "find_fundamental", "find_relative_pose", "pose_au
            "precision_recall", "mma"]
 
 
-def _points(value: Any, name: str) -> np.ndarray:
+def _real(value: Any, dtype: Any, name: str, expected: str) -> np.ndarray:
+    """``value`` as a real ``dtype`` array; complex input is an error, not a silently dropped imaginary part."""
     try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a numeric array of shape [N, 2]") from None
+        raw = np.asarray(value)
+        if np.iscomplexobj(raw):
+            raise ValueError(f"{name}: expected a real {expected}, got complex dtype {raw.dtype}")
+        return np.asarray(raw, dtype=dtype)
+    except TypeError:
+        raise ValueError(f"{name}: expected a numeric {expected}") from None
+    except ValueError as e:
+        if str(e).startswith(f"{name}:"):
+            raise
+        raise ValueError(f"{name}: expected a numeric {expected}") from None
+
+
+def _points(value: Any, name: str) -> np.ndarray:
+    arr = _real(value, np.float64, name, "array of shape [N, 2]")
     if arr.ndim != 2 or arr.shape[1] != 2:
         raise ValueError(f"{name}: expected shape [N, 2], got {list(arr.shape)}")
     if not np.isfinite(arr).all():
@@ -36,7 +48,7 @@ def _pair(points0: Any, points1: Any) -> tuple[bytes, bytes]:
 
 
 def _mat3(value: Any, name: str) -> list[float]:
-    m = np.asarray(value, dtype=np.float64)
+    m = _real(value, np.float64, name, "3×3 matrix")
     if m.shape != (3, 3) or not np.isfinite(m).all():
         raise ValueError(f"{name}: expected a finite 3×3 matrix, got shape {list(m.shape)}")
     return [float(v) for v in m.reshape(-1)]
@@ -133,7 +145,7 @@ def match_baseline(desc0: Any, desc1: Any, method: str = "mnn", ratio: float = 0
     Returns:
         ``matches0`` int64 ``[M]`` (−1 = unmatched).
     """
-    d0, d1 = np.asarray(desc0, dtype=np.float32), np.asarray(desc1, dtype=np.float32)
+    d0, d1 = _real(desc0, np.float32, "desc0", "[M, D] array"), _real(desc1, np.float32, "desc1", "[N, D] array")
     if d0.ndim != 2 or d1.ndim != 2 or d0.shape[1] != d1.shape[1]:
         raise ValueError(f"desc0, desc1: expected [M, D] and [N, D], got {list(d0.shape)} and {list(d1.shape)}")
     out = _core.match_baseline(np.ascontiguousarray(d0, "<f4").tobytes(), np.ascontiguousarray(d1, "<f4").tobytes(),
@@ -160,6 +172,6 @@ def mma(H: Any, kpts0: Any, kpts1: Any, matches0: Any, max_px: int = 10) -> np.n
     i = np.flatnonzero(m >= 0)
     if len(i) == 0:
         return np.zeros(max_px)
-    p = np.c_[k0[i], np.ones(len(i))] @ np.asarray(H, dtype=np.float64).T
+    p = np.c_[k0[i], np.ones(len(i))] @ _real(H, np.float64, "H", "3×3 matrix").T
     err = np.linalg.norm(p[:, :2] / p[:, 2:] - k1[m[i]], axis=1)
     return np.array([(err <= t).mean() for t in range(1, max_px + 1)])
