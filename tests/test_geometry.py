@@ -195,7 +195,9 @@ def test_complex_input_is_named_not_truncated():
              (lambda: g.find_relative_pose(pts, pts, np.eye(3) * (1 + 1j), np.eye(3)), "K0"),
              (lambda: g.homography_corner_error(np.eye(3), np.eye(3, dtype=np.complex64), 640, 480), "H_gt"),
              (lambda: g.match_baseline(np.ones((4, 8), np.complex64), np.ones((4, 8), np.float32)), "desc0"),
-             (lambda: g.mma(np.eye(3) + 0j, pts, pts, np.arange(8)), "H")]
+             (lambda: g.mma(np.eye(3) + 0j, pts, pts, np.arange(8)), "H"),
+             (lambda: g.mma(np.eye(3), pts, pts, np.arange(8) + 0j), "matches0"),
+             (lambda: g.precision_recall(np.arange(8), np.arange(8) * (1 + 0j)), "gt_matches0")]
     for call, name in cases:
         with pytest.raises(ValueError, match=rf"^{name}: expected a real .*complex"):
             call()

@@ -64,11 +64,13 @@ def _image(i: int, kpts: ArrayLike, desc: ArrayLike, scores: ArrayLike | None, s
         if s.shape != (n,):
             raise ValueError(f"scores{i}: expected shape [{n}], got {list(s.shape)}")
     try:
-        if np.iscomplexobj(size):
-            raise TypeError("complex")
-        sz = np.asarray(size, dtype=np.float64).reshape(-1)
+        raw = np.asarray(size)
+        # None for a complex size: a float cast would drop its imaginary part without a word.
+        sz = None if np.iscomplexobj(raw) else raw.astype(np.float64).reshape(-1)
     except (ValueError, TypeError):
-        raise ValueError(f"size{i}: expected (width, height), got {size!r}") from None
+        sz = None
+    if sz is None:
+        raise ValueError(f"size{i}: expected (width, height), got {size!r}")
     if sz.shape != (2,) or not np.isfinite(sz).all() or (sz <= 0).any():
         raise ValueError(f"size{i}: expected a positive (width, height), got {size!r}")
     for arr, name in ((k, f"kpts{i}"), (d, f"desc{i}"), (s, f"scores{i}")):

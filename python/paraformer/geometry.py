@@ -20,15 +20,12 @@ def _real(value: Any, dtype: Any, name: str, expected: str) -> np.ndarray:
     """``value`` as a real ``dtype`` array; complex input is an error, not a silently dropped imaginary part."""
     try:
         raw = np.asarray(value)
-        if np.iscomplexobj(raw):
-            raise ValueError(f"{name}: expected a real {expected}, got complex dtype {raw.dtype}")
-        return np.asarray(raw, dtype=dtype)
-    except TypeError:
+        arr = None if np.iscomplexobj(raw) else raw.astype(dtype, copy=False)
+    except (TypeError, ValueError):
         raise ValueError(f"{name}: expected a numeric {expected}") from None
-    except ValueError as e:
-        if str(e).startswith(f"{name}:"):
-            raise
-        raise ValueError(f"{name}: expected a numeric {expected}") from None
+    if arr is None:
+        raise ValueError(f"{name}: expected a real {expected}, got complex dtype {raw.dtype}")
+    return arr
 
 
 def _points(value: Any, name: str) -> np.ndarray:
@@ -155,7 +152,7 @@ def match_baseline(desc0: Any, desc1: Any, method: str = "mnn", ratio: float = 0
 
 def precision_recall(matches0: Any, gt_matches0: Any) -> dict:
     """Precision, recall and F1 of predicted ``matches0`` against ground truth (−2 = ignored)."""
-    pred, gt = np.asarray(matches0, dtype=np.int64), np.asarray(gt_matches0, dtype=np.int64)
+    pred, gt = _real(matches0, np.int64, "matches0", "[M] array"), _real(gt_matches0, np.int64, "gt_matches0", "[M] array")
     keep = (pred >= 0) & (gt != -2)
     tp = int(((pred == gt) & keep).sum())
     predicted, positives = int(keep.sum()), int((gt >= 0).sum())
@@ -168,7 +165,7 @@ def precision_recall(matches0: Any, gt_matches0: Any) -> dict:
 def mma(H: Any, kpts0: Any, kpts1: Any, matches0: Any, max_px: int = 10) -> np.ndarray:
     """Mean matching accuracy at ``1..max_px`` pixels under the true homography ``H``."""
     k0, k1 = _points(kpts0, "kpts0"), _points(kpts1, "kpts1")
-    m = np.asarray(matches0, dtype=np.int64)
+    m = _real(matches0, np.int64, "matches0", "[M] array")
     i = np.flatnonzero(m >= 0)
     if len(i) == 0:
         return np.zeros(max_px)
