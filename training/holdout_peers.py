@@ -16,6 +16,10 @@ again with the keypoint positions it reads shuffled within each image: what it l
 what it gets from geometry rather than from descriptors. ``--blind-descriptors P`` adds every
 matcher again with a share P of descriptors replaced by random ones and reports how many of
 the true matches touching such a keypoint it still finds: what it can match by place alone.
+``--wrong-matches`` adds, per matcher, where its wrong synthetic matches land: the distance
+from the keypoint it chose to the true location of its query (the query projected by H), in
+bins, and how often the chosen one is the keypoint nearest that location. Near misses (a
+neighbour a few pixels off) need fine positions to reject; far ones are descriptor confusions.
 """
 from __future__ import annotations
 
@@ -51,6 +55,9 @@ def main() -> None:
                          "by a random one of the same norm (the training's --blind-descriptors, fixed seeds), "
                          "and report the recall of the true matches that touch such a keypoint: matching by "
                          "place among the others")
+    ap.add_argument("--wrong-matches", action="store_true",
+                    help="also bin each matcher's wrong synthetic matches by the distance from the chosen keypoint "
+                         "to the query's true location (near misses against descriptor confusions)")
     ap.add_argument("--json")
     args = ap.parse_args()
     from evaluate import load_matcher, matcher_spec
@@ -85,12 +92,14 @@ def main() -> None:
                      if not label.endswith("positions shuffled")]
 
     pairs = []  # (features 0, features 1, labels of view 0, kind, H, image size 0)
+    truth = []  # per pair: view 0's keypoints projected into view 1 (the true locations)
     blinded = []  # per pair: (blinded features 0, 1, the view-0 keypoints whose true match touches a blinded one)
     for path in stream.shard_files(args.holdout):
         shard = stream.Shard(path)
         for i in range(len(shard)):
             bt = stream.collate([(shard, i)], args.keypoints, [False])
             pairs.append((*features(bt, shard.image_size[i]), bt["gt0"][0], int(shard.kind[i]), shard.H[i], shard.image_size[i][0]))
+            truth.append(np.asarray(shard.views[2 * i][3][: len(bt["gt0"][0])], np.float64))
             if args.blind_descriptors is not None:
                 bb = stream.blind_descriptors(bt, args.blind_descriptors, np.random.default_rng([len(pairs), 11]))
                 hit0 = (bb["descriptors0"][0] != bt["descriptors0"][0]).any(-1)
@@ -113,6 +122,7 @@ def main() -> None:
         errors: list[list[float]] = [[] for _ in range(args.ransac_seeds)]
         bins: dict[str, list[int]] = {}
         touched_found = touched_all = 0
+        wrong: list[tuple[float, bool]] = []  # (distance to the true location, chosen is the nearest)
         for n, ((f0, f1, gt0, kind, h, size), keys) in enumerate(zip(pairs, views)):
             if blind:
                 f0, f1, touched = blinded[n]
@@ -124,6 +134,8 @@ def main() -> None:
             counts[kind] = [a + b for a, b in zip(counts[kind], c)]
             for key in keys:
                 bins[key] = [a + b for a, b in zip(bins.get(key, [0, 0, 0]), c)]
+            if kind == 0 and args.wrong_matches and not blind:
+                wrong += wrong_matches(m0, gt0.numpy(), truth[n], f1["keypoints"])
             if kind == 0:
                 ok = m0 >= 0
                 for s in range(args.ransac_seeds):
@@ -138,6 +150,8 @@ def main() -> None:
         aucs = np.array([[100 * a for a in g.pose_auc(e, [1, 3, 5])] for e in errors])
         row["synthetic"]["auc_1_3_5px"] = aucs.mean(0).tolist()
         row["synthetic"]["auc_sd"] = aucs.std(0).tolist()
+        if args.wrong_matches and not blind:
+            row["synthetic_wrong_matches"] = bin_wrong(wrong)
         if bins:
             row["synthetic_f1_by_viewpoint"] = {k: {"pairs": bin_pairs[k], "f1": 100 * prf(*bins[k])[2]} for k in sorted(bins)}
         rows.append(row)
@@ -147,6 +161,10 @@ def main() -> None:
               f"{r['precision']:.1f}/{r['recall']:.1f}/{r['f1']:.1f}"
               + (f"  blinded matches found {row['blinded_match_recall']:.1f}% of {touched_all}" if blind else "")
               + f"  ({row['seconds']} s)", flush=True)
+        if "synthetic_wrong_matches" in row:
+            w = row["synthetic_wrong_matches"]
+            print(f"{'':40s} wrong synthetic matches {w['count']}: " + ", ".join(f"{k} px {v:.1f}%" for k, v in w["share_by_px"].items())
+                  + f"; the nearest keypoint to the true location {w['nearest_share']:.1f}%", flush=True)
     if bin_pairs:
         keys = sorted(bin_pairs)
         print("\nsynthetic F1 by viewpoint change (pairs per bin: " + ", ".join(f"{k} {bin_pairs[k]}" for k in keys) + ")")
@@ -165,6 +183,33 @@ def features(bt: dict, image_size) -> tuple[dict, dict]:
                   "scores": np.ascontiguousarray(bt[f"scores{v}"][0].numpy()),
                   "descriptors": np.ascontiguousarray(bt[f"descriptors{v}"][0].numpy()),
                   "image_size": image_size[v].astype(np.float32)} for v in (0, 1))
+
+
+WRONG_BINS = (3, 5, 8, 16, 32)  # px edges of the wrong-match distance bins
+
+
+def wrong_matches(m0: np.ndarray, gt0: np.ndarray, proj0: np.ndarray, kpts1: np.ndarray) -> list[tuple[float, bool]]:
+    """Each wrong match of view 0 (labelled positive or unmatched, predicted partner not the
+    label): the distance from the chosen keypoint of view 1 to the query's true location, and
+    whether no keypoint of view 1 lies closer to that location."""
+    out = []
+    for i in np.flatnonzero((m0 >= 0) & (gt0 != -2) & (m0 != gt0)):
+        if not np.isfinite(proj0[i]).all():
+            continue
+        d = np.linalg.norm(kpts1 - proj0[i], axis=1)
+        out.append((float(d[m0[i]]), bool(d[m0[i]] <= d.min())))
+    return out
+
+
+def bin_wrong(wrong: list[tuple[float, bool]]) -> dict:
+    """Shares (%) of the wrong matches per distance bin, and of those on the nearest keypoint."""
+    d = np.array([w[0] for w in wrong])
+    edges = (0.0,) + WRONG_BINS + (np.inf,)
+    names = [f"<{b}" for b in WRONG_BINS[:1]] + [f"{a}-{b}" for a, b in zip(WRONG_BINS, WRONG_BINS[1:])] + [f">={WRONG_BINS[-1]}"]
+    n = max(len(d), 1)
+    return {"count": len(d),
+            "share_by_px": {k: 100 * float(((d >= lo) & (d < hi)).sum()) / n for k, lo, hi in zip(names, edges, edges[1:])},
+            "nearest_share": 100 * sum(w[1] for w in wrong) / n}
 
 
 def shuffled(feats: dict, view: int) -> dict:
