@@ -190,6 +190,24 @@ def test_holdout_peers_shuffles_positions_only():
     assert feats["keypoints"].flags["C_CONTIGUOUS"] and a["keypoints"].flags["C_CONTIGUOUS"]
 
 
+def test_holdout_peers_bins_wrong_matches_by_distance():
+    """holdout_peers.py --wrong-matches: only predictions that differ from a positive or
+    unmatched label count (ignored labels and true matches do not), each binned by the
+    distance from the chosen keypoint to the query's true location."""
+    mod = load(ROOT / "training" / "holdout_peers.py", "holdout_peers_wrong_under_test")
+    kpts1 = np.array([[0, 0], [4, 0], [10, 0], [100, 0]], np.float64)
+    proj0 = np.array([[0, 0], [0, 0], [10, 0], [0, 0], [np.nan, np.nan], [0, 0]], np.float64)
+    gt0 = np.array([0, 0, -1, -2, -1, -1])
+    m0 = np.array([0, 1, 3, 2, 1, -1])  # right; 4 px neighbour; 90 px; ignored label; unknown truth; none
+    wrong = mod.wrong_matches(m0, gt0, proj0, kpts1)
+    assert wrong == [(4.0, False), (90.0, False)]
+    b = mod.bin_wrong(wrong + [(2.0, True)])
+    assert b["count"] == 3 and abs(b["nearest_share"] - 100 / 3) < 1e-9
+    assert b["share_by_px"]["<3"] == b["share_by_px"]["3-5"] == b["share_by_px"][">=32"] == 100 / 3
+    assert abs(sum(b["share_by_px"].values()) - 100) < 1e-9
+    assert mod.bin_wrong([])["count"] == 0
+
+
 def test_evaluate_names_the_unbuilt_cli(tmp_path, monkeypatch):
     """A fresh clone has no target/release/paraformer: the synthetic set's generation says
     which binary is missing and how to build it, not a bare FileNotFoundError."""
