@@ -33,6 +33,10 @@ for arm in $ARMS; do
     # and self/cross q/k/v + merges not shared, so cross-attention need not read positions.
     wide_phase) extra=(--dim 96 --heads 3 --depth 4 --phase-gain 2 100) ;;
     wide_unshared) extra=(--dim 96 --heads 3 --depth 4 --unshare qkv merge) ;;
+    # Both at once: high-frequency positions that self-attention can use while the unshared
+    # cross-attention projections are free to ignore them (wide_phase alone trained worse,
+    # presumably because absolute phases differ between the views and cross-attention read them).
+    wide_unshared_phase) extra=(--dim 96 --heads 3 --depth 4 --unshare qkv merge --phase-gain 2 100) ;;
     *) echo "unknown arm $arm" >&2; exit 2 ;;
   esac
   python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1
