@@ -315,3 +315,24 @@ def test_malloc_reuse_probe_counts_faults_and_names_bad_sizes():
     assert bad.returncode != 0 and "block size must be positive MiB, got 0" in bad.stderr and bad.stdout == ""
     bad = subprocess.run([sys.executable, str(probe), "8", "--repeat", "0"], capture_output=True, text=True)
     assert bad.returncode != 0 and "--repeat must be at least 1, got 0" in bad.stderr
+
+
+@pytest.mark.needs_torch
+def test_phase_resolution_of_a_linear_phase():
+    """training/phase_resolution.py: a phase linear in the normalised position changes by
+    slope / (0.7 · max(w, h)) rad per pixel (SPEC §1), whichever axis it follows; the missing
+    checkpoint is named."""
+    import subprocess
+
+    pytest.importorskip("torch", reason="torch not installed: phase_resolution.py evaluates a torch phase MLP")
+    mod = load(ROOT / "training" / "phase_resolution.py", "phase_resolution_under_test")
+    slopes = [10.0, -20.0, 0.0]
+
+    def phase(p):  # channel c: slope_c times x (c = 0), y (c = 1), neither (c = 2)
+        return p[..., [0, 1, 2]] * p.new_tensor(slopes) * p.new_tensor([1.0, 1.0, 0.0])
+
+    got = mod.phase_change_per_100px(phase, size=(640, 480))
+    assert np.allclose(got, np.abs(slopes) / (0.7 * 640) * 100, rtol=1e-4)
+    out = subprocess.run([sys.executable, str(ROOT / "training" / "phase_resolution.py"), "/nonexistent/last.pt"],
+                         capture_output=True, text=True)
+    assert out.returncode != 0 and "/nonexistent/last.pt: no such checkpoint file" in out.stderr
