@@ -205,7 +205,7 @@ def bin_wrong(wrong: list[tuple[float, bool]]) -> dict:
     """Shares (%) of the wrong matches per distance bin, and of those on the nearest keypoint."""
     d = np.array([w[0] for w in wrong])
     edges = (0.0,) + WRONG_BINS + (np.inf,)
-    names = [f"<{b}" for b in WRONG_BINS[:1]] + [f"{a}-{b}" for a, b in zip(WRONG_BINS, WRONG_BINS[1:])] + [f">={WRONG_BINS[-1]}"]
+    names = [f"<{WRONG_BINS[0]}"] + [f"{a}-{b}" for a, b in zip(WRONG_BINS, WRONG_BINS[1:])] + [f">={WRONG_BINS[-1]}"]
     n = max(len(d), 1)
     return {"count": len(d),
             "share_by_px": {k: 100 * float(((d >= lo) & (d < hi)).sum()) / n for k, lo, hi in zip(names, edges, edges[1:])},
