@@ -37,3 +37,65 @@ def test_reference_reproduces_fixture(folder, entry):
     assert torch.equal(out["matches1"][0], case["matches1"])
     for k in ("matching_scores0", "matching_scores1"):
         assert (out[k][0] - case[k]).abs().max().item() <= TOL
+
+
+def test_self_rotary_sees_only_relative_positions():
+    """The training-only rotary encoding (outside the SPEC): query·key products are unchanged
+    when both images' keypoints shift together, and change when distances change."""
+    from paraformer_train.model import SelfRotary, rotate_pairs
+
+    rot = SelfRotary(16, 1.0, 100.0)
+    g = torch.Generator().manual_seed(3)
+    pos = torch.rand(1, 20, 3, generator=g) - 0.5
+    q, k = torch.randn(2, 1, 2, 20, 16, generator=g)
+
+    def products(p):
+        r = rot(p)
+        return rotate_pairs(q, r) @ rotate_pairs(k, r).transpose(-1, -2)
+
+    shifted = pos + torch.tensor([0.3, -0.2, 0.0])
+    assert torch.allclose(products(pos), products(shifted), atol=1e-4)
+    assert not torch.allclose(products(pos), products(pos * 1.5), atol=1e-2)
+
+
+def test_self_rotary_leaves_the_spec_model_and_has_no_weights_file(tmp_path):
+    from paraformer_train.io import save_safetensors
+    from paraformer_train.model import Matcher
+
+    cfg = {"descriptor_dim": 64, "dim": 48, "num_heads": 3, "num_layers": 2}
+    torch.manual_seed(5)
+    plain = Matcher(cfg).state_dict()
+    torch.manual_seed(5)
+    rotary = Matcher(cfg, (1.0, 100.0))
+    # Its own generator: every SPEC weight starts as in the run without it.
+    spec = {k: v for k, v in rotary.state_dict().items() if not k.startswith("self_rotary.")}
+    assert spec.keys() == plain.keys()
+    assert all(torch.equal(spec[k], plain[k]) for k in plain)
+    with pytest.raises(ValueError, match="outside the SPEC"):
+        save_safetensors(rotary, str(tmp_path / "w.safetensors"))
+    with pytest.raises(ValueError, match="needs a paraformer model"):
+        Matcher({"model": "superglue", "descriptor_dim": 64, "dim": 48, "num_heads": 3}, (1.0, 100.0))
+    with pytest.raises(ValueError, match="expected 0 < LO <= HI"):
+        Matcher(cfg, (5.0, 1.0))
+
+
+def test_self_rotary_with_a_gain_starts_as_the_identity():
+    """``--self-rotary LO HI GAIN`` fine-tunes a trained model: at the start it computes what
+    the model without the encoding does."""
+    from paraformer_train.model import Matcher
+
+    cfg = {"descriptor_dim": 8, "dim": 16, "num_heads": 2, "num_layers": 2, "sinkhorn_iterations": 5}
+    torch.manual_seed(2)
+    plain = Matcher(cfg).eval()
+    grown = Matcher(cfg, (1.0, 100.0, 10.0)).eval()
+    grown.load_state_dict(plain.state_dict() | {"self_rotary.freq.weight": grown.self_rotary.freq.weight,
+                                                 "self_rotary.scale": grown.self_rotary.scale})
+    g = torch.Generator().manual_seed(4)
+    data = {f"keypoints{i}": torch.rand(1, 12, 2, generator=g) * 300 for i in (0, 1)}
+    data |= {f"scores{i}": torch.rand(1, 12, generator=g) for i in (0, 1)}
+    data |= {f"descriptors{i}": torch.randn(1, 12, 8, generator=g) for i in (0, 1)}
+    data |= {f"image_size{i}": torch.tensor([[320.0, 240.0]]) for i in (0, 1)}
+    with torch.no_grad():
+        assert torch.allclose(plain.scores(data), grown.scores(data), atol=1e-5)
+        grown.self_rotary.scale.fill_(0.1)
+        assert not torch.allclose(plain.scores(data), grown.scores(data), atol=1e-3)

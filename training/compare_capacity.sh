@@ -37,6 +37,10 @@ for arm in $ARMS; do
     # cross-attention projections are free to ignore them (wide_phase alone trained worse,
     # presumably because absolute phases differ between the views and cross-attention read them).
     wide_unshared_phase) extra=(--dim 96 --heads 3 --depth 4 --unshare qkv merge --phase-gain 2 100) ;;
+    # Outside the SPEC, to measure what an amendment would buy: LightGlue-style rotary encoding
+    # of self-attention's queries and keys in every layer (relative positions within an image),
+    # on top of the Wave-PE; frequencies 1..100 rad per normalized unit (~0.1..10 rad per 45 px).
+    wide_rotary) extra=(--dim 96 --heads 3 --depth 4 --self-rotary 1 100) ;;
     *) echo "unknown arm $arm" >&2; exit 2 ;;
   esac
   python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1

@@ -8,6 +8,9 @@
 #   python training/generate_pairs.py --pool training/runs/finetune_pool --seed 300 --shards 40 \
 #       --max-pending 1000 --real-fraction 0.5
 #   bash training/compare_finetunes.sh     # PAIRS=3600 ARMS="control layer_loss" to choose
+# The width-96 line's plateau (training/README "Relative positions in self-attention"):
+#   OUT=runs/compare_finetunes_w96 INIT=checkpoints/paraformer-xfeat-w96-alpha025/last.pt DIM=96 HEADS=3 \
+#       POSITIVE_PX= ARMS="control self_rotary" bash training/compare_finetunes.sh
 # Each arm's log.jsonl lands in training/runs/compare_finetunes/<arm>/; the initial weights'
 # validation in .../init/. Summary: python training/summarize_runs.py training/runs/compare_finetunes/*
 set -euo pipefail
@@ -16,10 +19,12 @@ PAIRS=${PAIRS:-3600}
 KEYPOINTS=${KEYPOINTS:-512x8:0.75,1024x4:0.25}
 INIT=${INIT:-checkpoints/paraformer-xfeat-finetune-1p5px-cont/last.pt}
 ARMS=${ARMS:-"control full_sinkhorn_grad layer_loss depth6 depth6_layer_loss"}
-OUT=runs/compare_finetunes
-common=(--preset paraformer --dim 64 --heads 2 --init "$INIT" --fixed-pool runs/finetune_pool
+OUT=${OUT:-runs/compare_finetunes}
+POSITIVE_PX=${POSITIVE_PX-1.5}  # empty: train.py's default positives (the w96 line's)
+common=(--preset paraformer --dim "${DIM:-64}" --heads "${HEADS:-2}" --init "$INIT" --fixed-pool runs/finetune_pool
         --pairs "$PAIRS" --keypoints "$KEYPOINTS" --lr 1e-4 --warmup 200 --ema 0.99 --val-every $((PAIRS / 2))
-        --real-fraction 0.5 --synthetic-positive-px 1.5 --seed 11 --threads "${THREADS:-2}")
+        --real-fraction 0.5 --seed 11 --threads "${THREADS:-2}")
+if [ -n "$POSITIVE_PX" ]; then common+=(--synthetic-positive-px "$POSITIVE_PX"); fi
 mkdir -p "$OUT"
 if [ ! -s "$OUT/init/log.jsonl" ]; then
   python train.py --run "$OUT/init" --work "$OUT/init" "${common[@]}" --depth 4 --validate-only > "$OUT/init.log" 2>&1
@@ -32,6 +37,9 @@ for arm in $ARMS; do
     depth6) extra=(--depth 6) ;;
     depth6_layer_loss) extra=(--depth 6 --layer-loss) ;;
     unshared) extra=(--depth 4 --unshare qkv merge) ;;
+    # Outside the SPEC: rotary self-attention added to a trained model, its angles starting at
+    # zero (the same function at the start) and growing at 10x Adam's step.
+    self_rotary) extra=(--depth 4 --self-rotary 1 100 10) ;;
     *) echo "unknown arm $arm" >&2; exit 2 ;;
   esac
   python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1

@@ -39,11 +39,13 @@ from paraformer_train.model import (Matcher, extract_matches, log_optimal_transp
                                     log_optimal_transport_last_grad, pair_scores)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare", "stage_dims", "pooling")
+MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare", "stage_dims", "pooling",
+              "self_rotary")
 # A resume refuses a change of these (the model's, and --layer-loss, whose heads are in the
 # optimiser's state); runs saved before an argument existed trained with its default here.
 RESUME_ARGS = MODEL_ARGS + ("layer_loss", "lr_scale_from")
-RESUME_DEFAULTS = {"unshare": [], "layer_loss": False, "stage_dims": None, "pooling": None, "lr_scale_from": None}
+RESUME_DEFAULTS = {"unshare": [], "layer_loss": False, "stage_dims": None, "pooling": None, "lr_scale_from": None,
+                   "self_rotary": None}
 SHARING = ("qkv", "merge", "attention_weights")
 
 
@@ -126,6 +128,15 @@ def phase_gain_init(model: Matcher, lo: float, hi: float) -> None:
         last.bias.mul_(gain)
 
 
+def export(model: Matcher, path: str) -> None:
+    """The EMA weights as a weights file; a model outside the SPEC (``--self-rotary``) has
+    none, and its checkpoint's ``ema`` holds them instead."""
+    if hasattr(model, "self_rotary"):
+        print(f"not written: {path} (self rotary is outside the SPEC; the checkpoint holds the weights)", flush=True)
+        return
+    save_safetensors(model, path)
+
+
 def init_weights(path: str, config: dict) -> dict:
     """The state dict a run starts from: a checkpoint's EMA weights, or a weights file's
     (e.g. the shipped ``paraformer-xfeat.safetensors``), whose architecture must be the run's."""
@@ -169,6 +180,8 @@ def load_init(model: Matcher, state: dict, copy_scale: float | None = None) -> l
     has them separate (``unshare_state``). Returns the indices of the new layers."""
     own = model.state_dict()
     state = unshare_state(state, own)
+    # A --self-rotary run from SPEC weights: the encoding keeps its own start (identity with a gain).
+    state = {k: v for k, v in own.items() if k.startswith("self_rotary.") and k not in state} | state
     new = sorted({int(k.split(".")[1]) for k in own if k.startswith("layers.")}
                  - {int(k.split(".")[1]) for k in state if k.startswith("layers.")})
     if copy_scale is not None and (model.config["model"] != "paraformer" or not new):
@@ -276,7 +289,7 @@ def log_assignments(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn
             scores = [(model.scores(bt), model.bin_score)]
         else:
             scores = [(pair_scores(proj, x, y), b) for (x, y), (proj, b)
-                      in zip(model.layer_states(*model.encode_pair(bt)), heads.heads(model))]
+                      in zip(model.layer_states(*model.encode_pair(bt), model.rotations(bt)), heads.heads(model))]
     return [sinkhorn(s.float(), b, iters) for s, b in scores]
 
 
@@ -458,6 +471,11 @@ def main() -> None:
     ap.add_argument("--phase-gain", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                     help="a fresh start's Wave-PE phase: per-channel gains from LO to HI on its last "
                          "Linear (spatial frequencies per channel; e.g. 2 100); ignored by a resume")
+    ap.add_argument("--self-rotary", type=float, nargs="+", default=None, metavar="LO HI [GAIN]",
+                    help="an experiment outside the SPEC (no weights file; compare_capacity.sh arm "
+                         "wide_rotary): rotary encoding of self-attention's queries and keys, learnable "
+                         "frequencies from LO to HI rad per normalized unit (0.7 x the longer side); with "
+                         "GAIN the angles start at zero (an --init model keeps its function) and grow")
     ap.add_argument("--pairs", type=int, default=600_000, help="training pairs in all (lr schedule length)")
     ap.add_argument("--decay-start", type=int, default=None,
                     help="pairs at which the cosine decay begins (default 60%% of --pairs); a branch off a "
@@ -571,7 +589,12 @@ def main() -> None:
         cfg = model_config(vars(args))
     except ValueError as e:
         sys.exit(f"error: {e}")
-    model = Matcher(cfg).train()
+    if args.self_rotary is not None and len(args.self_rotary) not in (2, 3):
+        sys.exit(f"error: --self-rotary {args.self_rotary}: expected LO HI or LO HI GAIN")
+    try:
+        model = Matcher(cfg, args.self_rotary).train()
+    except ValueError as e:
+        sys.exit(f"error: {e}")
     if args.phase_gain and state is None:
         lo, hi = args.phase_gain
         if args.init:
@@ -585,7 +608,7 @@ def main() -> None:
     # The exported weights: an exponential moving average of the trained ones, which smooths
     # the noise of small batches (batch 2-8) at a constant learning rate.
     # With --ema 0 it is the trained model itself.
-    ema = Matcher(cfg).eval() if args.ema > 0 else model
+    ema = Matcher(cfg, args.self_rotary).eval() if args.ema > 0 else model
     ema.load_state_dict(model.state_dict())
     if args.layer_loss and args.preset != "paraformer":
         sys.exit("error: --layer-loss needs --preset paraformer")
@@ -744,7 +767,7 @@ def main() -> None:
                 score = v["auc5px@2048"] + v["f1@2048"]
                 if score > best:
                     best = score
-                    save_safetensors(ema, os.path.join(work, "best.safetensors"))
+                    export(ema, os.path.join(work, "best.safetensors"))
                 save()
                 t_ckpt = time.time()
             if time.time() - t_ckpt > args.ckpt_minutes * 60:
@@ -752,7 +775,7 @@ def main() -> None:
                 t_ckpt = time.time()
     finally:
         save()
-        save_safetensors(ema, os.path.join(work, "last.safetensors"))
+        export(ema, os.path.join(work, "last.safetensors"))
         if gen is not None:
             gen.terminate()
         print(f"stopped at {pairs_seen} pairs, step {steps}", flush=True)

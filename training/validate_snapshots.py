@@ -34,7 +34,7 @@ def snapshots(path: str) -> list[tuple[int, dict, dict, dict]]:
 
 
 def Matcher_from_args(args: dict) -> Matcher:  # noqa: N802 (a constructor in all but name)
-    return Matcher(model_config(args))
+    return Matcher(model_config(args), args.get("self_rotary"))
 
 
 def main() -> None:

@@ -13,6 +13,8 @@ CONFIG_KEY = "paraformer.config"
 
 def save_safetensors(model: Matcher, path: str, dtype: torch.dtype = torch.float32) -> None:
     """Writes exactly the SPEC tensors (no ``num_batches_tracked``) and the config."""
+    if hasattr(model, "self_rotary"):
+        raise ValueError("a model with self rotary (outside the SPEC) has no weights file format")
     tensors = {k: v.detach().to(dtype).contiguous() for k, v in model.state_dict().items()
                if not k.endswith("num_batches_tracked")}
     save_file(tensors, path, metadata={CONFIG_KEY: json.dumps(model.config)})

@@ -109,6 +109,53 @@ class WavePE(nn.Module):
         return desc + self.fuse(torch.cat([a * torch.cos(theta), a * torch.sin(theta)], -1))
 
 
+class SelfRotary(nn.Module):
+    """Not in the SPEC (training experiments only; ``save_safetensors`` refuses it): rotary
+    encoding of self-attention's queries and keys from learnable 2-D frequencies, as LightGlue
+    does. It gives each layer's self-attention the relative positions of keypoints within one
+    image, which the SPEC's absolute Wave-PE, added once at the input, does not."""
+
+    def __init__(self, head_dim: int, lo: float, hi: float, gain: float = 0.0):
+        """``gain`` > 0: every angle is scaled by ``gain`` x a learnable per-pair factor that
+        starts at zero, so the encoding starts as the identity (a trained model fine-tuned
+        with it computes what it did) and grows at Adam's step size times ``gain``."""
+        super().__init__()
+        if head_dim % 2:
+            raise ValueError(f"self rotary: head width {head_dim} must be even")
+        if not 0 < lo <= hi:
+            raise ValueError(f"self rotary: frequencies {lo} {hi}: expected 0 < LO <= HI")
+        if gain < 0:
+            raise ValueError(f"self rotary: gain {gain}: expected 0 (none) or more")
+        self.freq = nn.Linear(2, head_dim // 2, bias=False)
+        # One frequency per channel pair, geometrically spaced from lo to hi (radians per unit of
+        # normalized position, 0.7 x the image's longer side), in a random direction.
+        # A generator of its own: the other weights and the batches stay those of the run without it.
+        n = head_dim // 2
+        angle = torch.rand(n, generator=torch.Generator().manual_seed(0)) * 2 * math.pi
+        mag = torch.logspace(math.log10(lo), math.log10(hi), n)
+        with torch.no_grad():
+            self.freq.weight.copy_(torch.stack([mag * torch.cos(angle), mag * torch.sin(angle)], -1))
+        self.gain = gain
+        if gain > 0:
+            self.scale = nn.Parameter(torch.zeros(n))
+
+    def forward(self, pos):
+        """``pos`` [B,K,≥2] normalized positions → (cos, sin), each [B,1,K,head_dim/2]."""
+        with torch.autocast(pos.device.type, enabled=False):
+            ang = self.freq(pos[..., :2].to(self.freq.weight.dtype))
+            if self.gain > 0:
+                ang = ang * (self.gain * self.scale)
+        return torch.cos(ang)[:, None], torch.sin(ang)[:, None]
+
+
+def rotate_pairs(t, rot):
+    """Rotates channel pairs (2i, 2i+1) of ``t`` [B,H,K,D] by the angles of ``rot``, so that
+    ⟨rotate(q, p_i), rotate(k, p_j)⟩ depends on positions only through p_i − p_j."""
+    cos, sin = rot
+    a, b = t[..., 0::2].float(), t[..., 1::2].float()
+    return torch.stack([a * cos - b * sin, a * sin + b * cos], -1).flatten(-2).to(t.dtype)
+
+
 def split_heads(x, h):
     b, k, c = x.shape
     return x.view(b, k, h, c // h).transpose(1, 2)
@@ -236,15 +283,20 @@ class ParallelAttention(nn.Module):
             return self.merge, self.merge
         return self.self_merge, self.cross_merge
 
-    def forward(self, x, y, need_probs: bool = True):
+    def forward(self, x, y, need_probs: bool = True, rot=None):
         """``need_probs``: also return the self-attention probabilities (attentional pooling
         reads them); without, every attention is fused SDPA. The shared cross-attention of
-        image 1 is SDPA with query K_y and key Q_x: exactly the column softmax of Q_x·K_yᵀ."""
+        image 1 is SDPA with query K_y and key Q_x: exactly the column softmax of Q_x·K_yᵀ.
+        ``rot``: (image 0's, image 1's) ``SelfRotary`` output, applied to self-attention's
+        queries and keys only (not in the SPEC; None there)."""
         sp, cp = self.projections()
         h = self.heads
         sh = lambda p, t: split_heads(p(t), h)  # noqa: E731
-        self_x, prob_x = attention(sh(sp[0], x), sh(sp[1], x), sh(sp[2], x), need_probs)
-        self_y, prob_y = attention(sh(sp[0], y), sh(sp[1], y), sh(sp[2], y), need_probs)
+        rx, ry = rot if rot is not None else (None, None)
+        qk = lambda t, r: (sh(sp[0], t), sh(sp[1], t)) if r is None else (  # noqa: E731
+            rotate_pairs(sh(sp[0], t), r), rotate_pairs(sh(sp[1], t), r))
+        self_x, prob_x = attention(*qk(x, rx), sh(sp[2], x), need_probs)
+        self_y, prob_y = attention(*qk(y, ry), sh(sp[2], y), need_probs)
         vx, vy = sh(cp[2], x), sh(cp[2], y)
         qx, ky = sh(cp[0], x), sh(cp[1], y)
         cross_x = attention(qx, ky, vy, need_prob=False)[0]
@@ -261,8 +313,8 @@ class ParallelLayer(nn.Module):
         self.attn = ParallelAttention(c, heads, switches)
         self.fuse = nn.Sequential(nn.Linear(3 * c, 2 * c), nn.LayerNorm(2 * c), nn.GELU(), nn.Linear(2 * c, c))
 
-    def forward(self, x, y, need_probs: bool = True):
-        (sx, cx), (sy, cy), probs = self.attn(x, y, need_probs)
+    def forward(self, x, y, need_probs: bool = True, rot=None):
+        (sx, cx), (sy, cy), probs = self.attn(x, y, need_probs, rot)
         m_self, m_cross = self.attn.merges()
         x2 = x + self.fuse(torch.cat([x, m_self(sx), m_cross(cx)], -1))
         y2 = y + self.fuse(torch.cat([y, m_self(sy), m_cross(cy)], -1))
@@ -472,12 +524,15 @@ def pair_scores(proj: nn.Linear, x, y):
 
 
 class Matcher(nn.Module):
-    """The whole network; ``config`` is a SPEC §9 dict (missing fields take defaults)."""
+    """The whole network; ``config`` is a SPEC §9 dict (missing fields take defaults).
+    ``self_rotary`` (LO, HI[, GAIN]): an experiment outside the SPEC, ParaFormer only (``SelfRotary``)."""
 
-    def __init__(self, config: dict | None = None):
+    def __init__(self, config: dict | None = None, self_rotary: tuple[float, ...] | None = None):
         super().__init__()
         cfg = self.config = resolve_config(config or {})
         c, heads = model_dim(cfg), cfg["num_heads"]
+        if self_rotary is not None and cfg["model"] != "paraformer":
+            raise ValueError(f"self rotary needs a paraformer model, not {cfg['model']!r}")
         if cfg["descriptor_dim"] != c:
             self.input_proj = nn.Linear(cfg["descriptor_dim"], c)
         if cfg["positional_encoding"] == "mlp":
@@ -497,6 +552,8 @@ class Matcher(nn.Module):
             self.unpools = nn.ModuleList([Unpool(dims[q + 2], dims[q + 3]) for q in range(2)])
         self.final_proj = nn.Linear(c, c)
         self.bin_score = nn.Parameter(torch.tensor(1.0))
+        if self_rotary is not None:
+            self.self_rotary = SelfRotary(c // heads, *self_rotary)
 
     def encode(self, kpts, scores, desc, size):
         if hasattr(self, "input_proj"):
@@ -505,13 +562,13 @@ class Matcher(nn.Module):
         enc = self.kenc if hasattr(self, "kenc") else self.wave_pe
         return enc(desc, pos)
 
-    def body(self, x, y):
+    def body(self, x, y, rot=None):
         model = self.config["model"]
         if model == "superglue":
             for layer in self.gnn.layers:
                 x, y = layer(x, y)
         elif model == "paraformer":
-            x, y = self.layer_states(x, y)[-1]
+            x, y = self.layer_states(x, y, rot)[-1]
         else:
             skips, indices = [], []
             for p in range(2):
@@ -532,17 +589,24 @@ class Matcher(nn.Module):
         y = self.encode(data["keypoints1"], data["scores1"], data["descriptors1"], data["image_size1"])
         return x, y
 
-    def scores(self, data: dict):
-        return pair_scores(self.final_proj, *self.body(*self.encode_pair(data)))
+    def rotations(self, data: dict):
+        """The ``SelfRotary`` encodings of both images, or None (every SPEC model)."""
+        if not hasattr(self, "self_rotary"):
+            return None
+        return tuple(self.self_rotary(normalize_keypoints(data[f"keypoints{i}"], data[f"scores{i}"],
+                                                          data[f"image_size{i}"])) for i in (0, 1))
 
-    def layer_states(self, x, y) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    def scores(self, data: dict):
+        return pair_scores(self.final_proj, *self.body(*self.encode_pair(data), self.rotations(data)))
+
+    def layer_states(self, x, y, rot=None) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """ParaFormer only: the features of both images after every layer, from the encoded
         ``x, y`` (the last entry is what ``body`` returns); training puts a loss on each."""
         if self.config["model"] != "paraformer":
             raise ValueError(f"layer_states needs a paraformer model, not {self.config['model']!r}")
         states = []
         for layer in self.layers:
-            x, y, _ = layer(x, y, need_probs=False)
+            x, y, _ = layer(x, y, need_probs=False, rot=rot)
             states.append((x, y))
         return states
 
