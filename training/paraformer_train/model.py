@@ -293,10 +293,13 @@ class ParallelAttention(nn.Module):
         h = self.heads
         sh = lambda p, t: split_heads(p(t), h)  # noqa: E731
         rx, ry = rot if rot is not None else (None, None)
-        qk = lambda t, r: (sh(sp[0], t), sh(sp[1], t)) if r is None else (  # noqa: E731
-            rotate_pairs(sh(sp[0], t), r), rotate_pairs(sh(sp[1], t), r))
-        self_x, prob_x = attention(*qk(x, rx), sh(sp[2], x), need_probs)
-        self_y, prob_y = attention(*qk(y, ry), sh(sp[2], y), need_probs)
+
+        def self_qk(t, r):
+            q, k = sh(sp[0], t), sh(sp[1], t)
+            return (q, k) if r is None else (rotate_pairs(q, r), rotate_pairs(k, r))
+
+        self_x, prob_x = attention(*self_qk(x, rx), sh(sp[2], x), need_probs)
+        self_y, prob_y = attention(*self_qk(y, ry), sh(sp[2], y), need_probs)
         vx, vy = sh(cp[2], x), sh(cp[2], y)
         qx, ky = sh(cp[0], x), sh(cp[1], y)
         cross_x = attention(qx, ky, vy, need_prob=False)[0]
