@@ -1096,3 +1096,13 @@ def test_bf16_support_is_read_from_the_cpu_flags():
     assert cpu_has_bf16(zen5) is True
     assert cpu_has_bf16(graviton3) is True
     assert cpu_has_bf16("model name\t: unknown\n") is None
+
+
+def test_native_attention_is_dropped_where_amx_runs_pytorchs_bf16():
+    from train import native_attention_pays
+
+    zen5 = "processor\t: 0\nflags\t\t: avx2 avx512f avx512bw avx512_bf16 avx512_vnni\n"
+    sapphire_rapids = "processor\t: 0\nflags\t\t: avx512f avx512_bf16 amx_bf16 amx_tile amx_int8\n"
+    assert native_attention_pays(zen5) is True
+    assert native_attention_pays(sapphire_rapids) is False
+    assert native_attention_pays("model name\t: unknown\n") is True  # unknown: the flag is honoured

@@ -40,6 +40,10 @@ for arm in $ARMS; do
     # Outside the SPEC: rotary self-attention added to a trained model, its angles starting at
     # zero (the same function at the start) and growing at 10x Adam's step.
     self_rotary) extra=(--depth 4 --self-rotary 1 100 10) ;;
+    # The same recipe on a pool without real pairs (generate_pairs.py --pool
+    # runs/finetune_pool_synthetic --seed 300 --shards 40 --max-pending 1000 --real-fraction 0):
+    # whether the real pairs' labels cost the synthetic matching at the plateau.
+    synthetic_only) extra=(--depth 4 --fixed-pool runs/finetune_pool_synthetic) ;;
     *) echo "unknown arm $arm" >&2; exit 2 ;;
   esac
   python train.py --run "$OUT/$arm" --work "$OUT/$arm" "${common[@]}" "${extra[@]}" > "$OUT/$arm.log" 2>&1

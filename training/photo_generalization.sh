@@ -5,7 +5,8 @@
 # photos), both BSDS500 at 481x321. A gap on the learned models that mutual NN and
 # LighterGlue (never trained on either) do not show would be memorisation.
 #   bash training/photo_generalization.sh LABEL=WEIGHTS.safetensors@THRESHOLD ...
-# Writes training/results/photo_generalization_<photos>_<keypoints>kp.json.
+# Writes training/results/photo_generalization_<photos>_<keypoints>kp.json, or ..._<TAG>.json
+# with TAG set in the environment (to keep an earlier run's files).
 set -euo pipefail
 cd "$(dirname "$0")"
 shared=../../shared/data/train
@@ -17,6 +18,6 @@ for photos in bsds500_train bsds500_val; do
       --shards 1 --shard-size 128 --max-pending 1000 --photos "$shared/$photos" --real-fraction 0
   for k in 512 2048; do
     python holdout_peers.py --holdout "$pool" --keypoints "$k" --threads "${THREADS:-1}" --lighterglue \
-        --ransac-seeds 3 "${matchers[@]}" --json "results/photo_generalization_${photos}_${k}kp.json"
+        --ransac-seeds 3 "${matchers[@]}" --json "results/photo_generalization_${photos}_${k}kp${TAG:+_$TAG}.json"
   done
 done

@@ -49,11 +49,9 @@ RESUME_DEFAULTS = {"unshare": [], "layer_loss": False, "stage_dims": None, "pool
 SHARING = ("qkv", "merge", "attention_weights")
 
 
-def cpu_has_bf16(cpuinfo: str | None = None) -> bool | None:
-    """Whether the CPU computes bf16 natively (x86 AVX512-BF16 or AMX-BF16, Arm BF16), from
-    ``/proc/cpuinfo``; None where that cannot be read. Without it PyTorch emulates bf16 and
-    ``--bf16`` costs instead of paying: 10.8 s against 2.2 s per w96 step at 2048 x 2 on an
-    AVX2-only Zen 3 (bench_step.py, one run)."""
+def cpu_flags(cpuinfo: str | None = None) -> set[str] | None:
+    """The CPU's feature flags from ``/proc/cpuinfo`` (x86 ``flags``, Arm ``Features``); None
+    where that cannot be read or names none."""
     if cpuinfo is None:
         try:
             with open("/proc/cpuinfo") as f:
@@ -65,9 +63,25 @@ def cpu_has_bf16(cpuinfo: str | None = None) -> bool | None:
         key, _, value = line.partition(":")
         if key.strip().lower() in ("flags", "features"):
             flags.update(value.split())
-    if not flags:
-        return None
-    return bool(flags & {"avx512_bf16", "amx_bf16", "bf16"})
+    return flags or None
+
+
+def cpu_has_bf16(cpuinfo: str | None = None) -> bool | None:
+    """Whether the CPU computes bf16 natively (x86 AVX512-BF16 or AMX-BF16, Arm BF16), from
+    ``/proc/cpuinfo``; None where that cannot be read. Without it PyTorch emulates bf16 and
+    ``--bf16`` costs instead of paying: 10.8 s against 2.2 s per w96 step at 2048 x 2 on an
+    AVX2-only Zen 3 (bench_step.py, one run)."""
+    flags = cpu_flags(cpuinfo)
+    return None if flags is None else bool(flags & {"avx512_bf16", "amx_bf16", "bf16"})
+
+
+def native_attention_pays(cpuinfo: str | None = None) -> bool:
+    """Whether ``--native-attention`` (the engine's AVX-512 BF16 kernels) beats PyTorch's bf16
+    SDPA here: not on CPUs with AMX-BF16, where PyTorch's bf16 products run on AMX tiles (w96
+    step, Xeon Sapphire Rapids, bench_step.py: 0.996 against 1.000 s at 512 x 8, 2.24 against
+    1.84 s at 2048 x 2; on a Zen 5 without AMX the native step was 1.4x faster)."""
+    flags = cpu_flags(cpuinfo)
+    return flags is None or "amx_bf16" not in flags
 
 
 def preset(name: str, dim: int, depth: int, heads: int) -> dict:
@@ -562,6 +576,11 @@ def main() -> None:
                 print(f"note: --{flag.replace('_', '-')} dropped: this CPU has no native bf16 "
                       "(emulated bf16 is several times slower than fp32)", flush=True)
                 setattr(args, flag, False)
+    if args.native_attention and not native_attention_pays():
+        # A speed option only (validation and export stay fp32 SDPA): dropped, not refused.
+        print("note: --native-attention dropped: this CPU has AMX-BF16, where PyTorch's bf16 attention "
+              "is as fast or faster (train.py native_attention_pays)", flush=True)
+        args.native_attention = False
     if args.native_attention:
         try:
             from paraformer import _paraformer
