@@ -78,8 +78,9 @@ def cpu_has_bf16(cpuinfo: str | None = None) -> bool | None:
 def native_attention_pays(cpuinfo: str | None = None) -> bool:
     """Whether ``--native-attention`` (the engine's AVX-512 BF16 kernels) beats PyTorch's bf16
     SDPA here: not on CPUs with AMX-BF16, where PyTorch's bf16 products run on AMX tiles (w96
-    step, Xeon Sapphire Rapids, bench_step.py: 0.996 against 1.000 s at 512 x 8, 2.24 against
-    1.84 s at 2048 x 2; on a Zen 5 without AMX the native step was 1.4x faster)."""
+    step on a Xeon Sapphire Rapids, bench_step.py: native 0.996 s and bf16 SDPA 1.000 s at
+    512 x 8, 2.24 and 1.84 s at 2048 x 2; on a Zen 5 without AMX the native step was 1.4x
+    faster)."""
     flags = cpu_flags(cpuinfo)
     return flags is None or "amx_bf16" not in flags
 
