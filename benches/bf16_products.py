@@ -11,8 +11,11 @@ bf16 kernels use `vdpbf16ps` (see training/README, "The trainer on Sapphire Rapi
 from __future__ import annotations
 
 import argparse
-import os
+import sys
 import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "training"))
 
 
 def median_time(f, reps: int) -> float:
@@ -34,12 +37,10 @@ def main() -> None:
     if args.threads < 1 or args.reps < 1:
         raise SystemExit("error: --threads and --reps must be at least 1")
     import torch
+    from train import cpu_flags  # training/train.py: the flags its bf16 choices read (imports torch)
 
     torch.set_num_threads(args.threads)
-    flags = ""
-    if os.path.exists("/proc/cpuinfo"):
-        with open("/proc/cpuinfo") as f:
-            flags = f.read()
+    flags = cpu_flags() or set()
     print(f"threads {args.threads}; AMX-BF16 {'amx_bf16' in flags}, AVX512-BF16 {'avx512_bf16' in flags}")
     g = torch.Generator().manual_seed(0)
     # (batch, m, k, n): scores Q·Kᵀ, values P·V, the fused q/k/v projection, the MLP's square layer.
