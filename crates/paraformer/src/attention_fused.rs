@@ -136,6 +136,8 @@ pub(crate) struct Packed {
     pub(crate) k: Vec<f32>,
     q16: Vec<u16>,
     k16: Vec<u16>,
+    /// bf16 products on AMX tiles ([`crate::attention_amx`]) instead of `vdpbf16ps`.
+    pub(crate) amx: bool,
 }
 
 pub(crate) fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
@@ -143,8 +145,9 @@ pub(crate) fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
     let d = c / heads;
     let (mp, np) = (m.div_ceil(STRIP) * STRIP, n.div_ceil(32) * 32);
     let factor = std::f32::consts::LOG2_E / (d as f32).sqrt();
-    let mut p = Packed { heads, d, m, n, mp, np, ld: np + 16, q: Vec::new(), k: Vec::new(), q16: Vec::new(), k16: Vec::new() };
+    let mut p = Packed { heads, d, m, n, mp, np, ld: np + 16, q: Vec::new(), k: Vec::new(), q16: Vec::new(), k16: Vec::new(), amx: false };
     if bf16 {
+        p.amx = crate::attention_amx::active();
         (p.q16, p.k16) = pack_as(q, k, heads, mp, np, |v| to_bf16(v * factor), to_bf16, |lane, c| (c / 2) * 32 + lane * 2 + c % 2);
     } else {
         (p.q, p.k) = pack_as(q, k, heads, mp, np, |v| v * factor, |v| v, |lane, c| c * 16 + lane);
@@ -189,12 +192,11 @@ fn pack_as<T: Copy + Default + Send + Sync>(
     (qp, kp)
 }
 
-/// Values of every head as bf16, `[H][ceil(rows/2)][d][2]` (pairs of rows interleaved);
-/// fp32 reads the strided values in place.
-fn pack_values_bf16(v: View, heads: usize) -> Vec<u16> {
+/// Values of every head as bf16, `[H][half][d][2]` (pairs of rows interleaved, zero
+/// beyond the rows; `half ≥ ceil(rows/2)`); fp32 reads the strided values in place.
+fn pack_values_bf16(v: View, heads: usize, half: usize) -> Vec<u16> {
     let (n, c) = (v.rows, v.cols);
     let d = c / heads;
-    let half = n.div_ceil(2);
     let mut out = vec![0u16; heads * half * d * 2];
     out.par_chunks_mut(d * 2).enumerate().for_each(|(t, o)| {
         let (h, pair) = (t / half, t % half);
@@ -411,7 +413,8 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool, bf16: 
         return Ok((out, col_sums.then(|| vec![0.0; n])));
     }
     let pk = pack(q, k, heads, bf16);
-    let v16 = if bf16 { pack_values_bf16(v, heads) } else { Vec::new() };
+    // Padded to `np` rows: the tile kernels read whole blocks of 32 keys.
+    let v16 = if bf16 { pack_values_bf16(v, heads, pk.np / 2) } else { Vec::new() };
     let d = pk.d;
     let strips = pk.mp / STRIP;
     let dst = SharedMut(out.data.as_mut_ptr());
@@ -466,7 +469,9 @@ unsafe fn self_strip_bf16<const D: usize>(job: &SelfJob, s: &mut [f32], p16: &mu
 #[inline(always)]
 unsafe fn strip_scores<const D: usize, const BF: bool>(pk: &Packed, h: usize, r0: usize, s: &mut [f32]) {
     let (q, k) = ((h * pk.mp + r0) * D, h * pk.np * D);
-    if BF {
+    if BF && pk.amx {
+        crate::attention_amx::scores::<D>(pk.q16.as_ptr().add(q), pk.k16.as_ptr().add(k), pk.n, pk.np, s.as_mut_ptr(), pk.ld);
+    } else if BF {
         scores_bf16::<D>(pk.q16.as_ptr().add(q), pk.k16.as_ptr().add(k), pk.n, pk.np, s.as_mut_ptr(), pk.ld);
     } else {
         scores_f32::<D>(pk.q.as_ptr().add(q), pk.k.as_ptr().add(k), pk.n, pk.np, s.as_mut_ptr(), pk.ld);
@@ -497,7 +502,13 @@ unsafe fn strip_rows<const D: usize, const BF: bool>(
     }
     let mut out = [[0.0f32; 64]; STRIP];
     if BF {
-        values_bf16::<D>(p16.as_ptr(), ld, n, v16.as_ptr().add(h * n.div_ceil(2) * D * 2), &mut out);
+        // Values of head h: `np/2` pairs of rows (see `pack_values_bf16`).
+        let vh = v16.as_ptr().add(h * np * D);
+        if pk.amx {
+            crate::attention_amx::values::<D>(p16.as_ptr(), ld, n, vh, &mut out);
+        } else {
+            values_bf16::<D>(p16.as_ptr(), ld, n, vh, &mut out);
+        }
     } else {
         values_f32::<D>(s.as_ptr(), ld, n, v.data.as_ptr().add(h * D), v.stride, &mut out);
     }
@@ -554,8 +565,8 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
         return Ok((out_x, out_y));
     }
     let pk = pack(qx, ky, heads, bf16);
-    let vy16 = if bf16 { pack_values_bf16(vy, heads) } else { Vec::new() };
-    let vx16 = if bf16 { pack_values_bf16(vx, heads) } else { Vec::new() };
+    let vy16 = if bf16 { pack_values_bf16(vy, heads, pk.np / 2) } else { Vec::new() };
+    let vx16 = if bf16 { pack_values_bf16(vx, heads, m.div_ceil(2)) } else { Vec::new() };
     let d = pk.d;
     let split = CrossTasks::new(m);
     let chunks = split.chunks();

@@ -39,6 +39,7 @@
 pub mod allocator;
 #[doc(hidden)]
 pub mod attention;
+pub mod attention_amx;
 #[doc(hidden)]
 pub mod attention_fused;
 #[doc(hidden)]
