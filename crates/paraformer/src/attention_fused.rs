@@ -136,7 +136,7 @@ pub(crate) struct Packed {
     pub(crate) k: Vec<f32>,
     q16: Vec<u16>,
     k16: Vec<u16>,
-    /// bf16 products on AMX tiles ([`crate::attention_amx`]) instead of `vdpbf16ps`.
+    /// bf16 products on AMX tiles ([`crate::amx`]) instead of `vdpbf16ps`.
     pub(crate) amx: bool,
 }
 
@@ -147,7 +147,7 @@ pub(crate) fn pack(q: View, k: View, heads: usize, bf16: bool) -> Packed {
     let factor = std::f32::consts::LOG2_E / (d as f32).sqrt();
     let mut p = Packed { heads, d, m, n, mp, np, ld: np + 16, q: Vec::new(), k: Vec::new(), q16: Vec::new(), k16: Vec::new(), amx: false };
     if bf16 {
-        p.amx = crate::attention_amx::active();
+        p.amx = crate::amx::active();
         (p.q16, p.k16) = pack_as(q, k, heads, mp, np, |v| to_bf16(v * factor), to_bf16, |lane, c| (c / 2) * 32 + lane * 2 + c % 2);
     } else {
         (p.q, p.k) = pack_as(q, k, heads, mp, np, |v| v * factor, |v| v, |lane, c| c * 16 + lane);
@@ -470,7 +470,7 @@ unsafe fn self_strip_bf16<const D: usize>(job: &SelfJob, s: &mut [f32], p16: &mu
 unsafe fn strip_scores<const D: usize, const BF: bool>(pk: &Packed, h: usize, r0: usize, s: &mut [f32]) {
     let (q, k) = ((h * pk.mp + r0) * D, h * pk.np * D);
     if BF && pk.amx {
-        crate::attention_amx::scores::<D>(pk.q16.as_ptr().add(q), pk.k16.as_ptr().add(k), pk.n, pk.np, s.as_mut_ptr(), pk.ld);
+        crate::amx::scores::<D>(pk.q16.as_ptr().add(q), pk.k16.as_ptr().add(k), pk.n, pk.np, s.as_mut_ptr(), pk.ld);
     } else if BF {
         scores_bf16::<D>(pk.q16.as_ptr().add(q), pk.k16.as_ptr().add(k), pk.n, pk.np, s.as_mut_ptr(), pk.ld);
     } else {
@@ -505,7 +505,7 @@ unsafe fn strip_rows<const D: usize, const BF: bool>(
         // Values of head h: `np/2` pairs of rows (see `pack_values_bf16`).
         let vh = v16.as_ptr().add(h * np * D);
         if pk.amx {
-            crate::attention_amx::values::<D>(p16.as_ptr(), ld, n, vh, &mut out);
+            crate::amx::values::<D>(p16.as_ptr(), ld, n, vh, &mut out);
         } else {
             values_bf16::<D>(p16.as_ptr(), ld, n, vh, &mut out);
         }

@@ -37,9 +37,9 @@
 
 #[cfg(feature = "mimalloc")]
 pub mod allocator;
+pub mod amx;
 #[doc(hidden)]
 pub mod attention;
-pub mod attention_amx;
 #[doc(hidden)]
 pub mod attention_fused;
 #[doc(hidden)]

@@ -1,6 +1,7 @@
-//! Intel AMX tile kernels for the two products of the bf16 fused attention
-//! ([`crate::attention_fused`], SPEC §4–§5): the scores `q·kᵀ` of a strip of 16 query rows
-//! and the value product `p·v` of that strip.
+//! Intel AMX tile kernels for the bf16 products (`Precision::Bf16`): the two products of
+//! the fused attention ([`crate::attention_fused`], SPEC §4–§5), i.e. the scores `q·kᵀ` of a
+//! strip of 16 query rows and its value product `p·v`, and the attention layers' Linear
+//! layers ([`crate::gemm_bf16`]).
 //!
 //! On CPUs with AMX-BF16 (Sapphire Rapids and later) one `tdpbf16ps` does 16 × 16 × 32
 //! multiply-accumulates, several times what the same core does with `vdpbf16ps`, which it
@@ -261,11 +262,71 @@ pub(crate) unsafe fn values<const D: usize>(p16: *const u16, ld: usize, n: usize
     }
 }
 
+/// `C = A·W` for 32 rows and 32 columns: `a` holds 32 rows of `k2p` bf16 pairs (row stride
+/// `k2p` pairs, `k2p` a multiple of 16), `w` the packed weights from column `j0` on
+/// (`[k2p][np][2]`, row stride `np` pairs); `cols` is 16 or 32. `c` gets `[32][32]` floats.
+///
+/// # Safety
+/// [`active`]; the buffers hold what is described (for `cols` = 16, only 16 columns of `w`
+/// are read).
+#[cfg(target_arch = "x86_64")]
+pub(crate) unsafe fn gemm_32x32(a: *const u16, k2p: usize, w: *const u16, np: usize, cols: usize, c: &mut [[f32; 32]; 32]) {
+    let cfg = TileConfig::new([(16, 64); 8]);
+    let (as_, ws, cs) = (k2p * 4, np * 4, 32usize * 4);
+    let o = c.as_mut_ptr() as *mut f32;
+    // SAFETY: AMX per the caller; K blocks of 16 pairs read 16 rows of `a` (64 bytes each, two
+    // row groups) and 16 pair rows of `w` (64 bytes at column j0 and, for 32 columns, j0 + 16).
+    unsafe {
+        cfg.load();
+        asm!("tilezero tmm4", "tilezero tmm5", "tilezero tmm6", "tilezero tmm7", options(nostack, nomem));
+        for kb in (0..k2p).step_by(16) {
+            let (a0, a1, b0) = (a.add(kb * 2), a.add((16 * k2p + kb) * 2), w.add(kb * np * 2));
+            if cols == 32 {
+                asm!(
+                    "tileloadd tmm0, [{a0} + {as_}*1]",
+                    "tileloadd tmm2, [{b0} + {ws}*1]",
+                    "tileloadd tmm3, [{b1} + {ws}*1]",
+                    "tdpbf16ps tmm4, tmm0, tmm2",
+                    "tdpbf16ps tmm5, tmm0, tmm3",
+                    "tileloadd tmm1, [{a1} + {as_}*1]",
+                    "tdpbf16ps tmm6, tmm1, tmm2",
+                    "tdpbf16ps tmm7, tmm1, tmm3",
+                    a0 = in(reg) a0, a1 = in(reg) a1, b0 = in(reg) b0, b1 = in(reg) b0.add(32),
+                    as_ = in(reg) as_, ws = in(reg) ws, options(nostack, readonly),
+                );
+            } else {
+                asm!(
+                    "tileloadd tmm0, [{a0} + {as_}*1]",
+                    "tileloadd tmm2, [{b0} + {ws}*1]",
+                    "tdpbf16ps tmm4, tmm0, tmm2",
+                    "tileloadd tmm1, [{a1} + {as_}*1]",
+                    "tdpbf16ps tmm6, tmm1, tmm2",
+                    a0 = in(reg) a0, a1 = in(reg) a1, b0 = in(reg) b0, as_ = in(reg) as_, ws = in(reg) ws,
+                    options(nostack, readonly),
+                );
+            }
+        }
+        asm!(
+            "tilestored [{o0} + {cs}*1], tmm4",
+            "tilestored [{o1} + {cs}*1], tmm5",
+            "tilestored [{o2} + {cs}*1], tmm6",
+            "tilestored [{o3} + {cs}*1], tmm7",
+            o0 = in(reg) o, o1 = in(reg) o.add(16), o2 = in(reg) o.add(16 * 32), o3 = in(reg) o.add(16 * 32 + 16),
+            cs = in(reg) cs, options(nostack),
+        );
+        release();
+    }
+}
+
 #[cfg(all(test, target_arch = "x86_64"))]
-mod tests {
+pub(crate) mod tests {
     use crate::attention::{attention, cross_attention_shared};
     use crate::attention_fused::tests::{general, max_diff, random};
     use crate::kernels::{Ctx, Precision};
+
+    /// Held by the tests that switch the tiles off and on (a process-wide switch), so that
+    /// each compares the two paths it means to.
+    pub(crate) static SWITCH: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
     /// The tile kernels against the fp32 general path and beside the AVX-512 BF16 kernels:
     /// the same bf16 operands with fp32 accumulation in another order, so both are as far
@@ -278,6 +339,7 @@ mod tests {
             eprintln!("skipped: no AMX-BF16 here (or the OS refused the tile state)");
             return;
         }
+        let _switch = SWITCH.lock().unwrap_or_else(|e| e.into_inner());
         let bf = Ctx::with_precision(Precision::Bf16);
         let amp = 2.0;
         for &(m, n, c, heads) in &[(77, 53, 64, 4), (600, 301, 64, 2), (33, 517, 128, 2), (5, 1, 32, 2), (300, 300, 64, 1), (2048, 2048, 96, 3), (17, 64, 192, 3)] {
