@@ -2,13 +2,15 @@
 //! three models at the paper's full widths (C = 256) at 512/1024/2048 keypoints; the
 //! shipped configurations (C = 64 with 4 heads, and 2 heads) in fp32 and bf16; the parts
 //! separately (one parallel layer, one serial layer, Sinkhorn, encoder); one C = 64
-//! parallel layer through the fused narrow-head kernels against the general path; and
-//! XFeat at 640×480 with its direct convolutions against im2col + GEMM.
+//! parallel layer through the fused narrow-head kernels against the general path; the
+//! width-96 line's configuration (3 heads) in bf16 with and without AMX tiles, against fp32;
+//! and XFeat at 640×480 with its direct convolutions against im2col + GEMM.
 //!
 //!     cargo bench -p paraformer-benches
 //!     cargo bench -p paraformer-benches -- end_to_end/paraformer/2048   # one case
 //!     cargo bench -p paraformer-benches -- shipped                      # shipped configs
 //!     cargo bench -p paraformer-benches -- xfeat                        # XFeat, both paths
+//!     cargo bench -p paraformer-benches -- amx                          # AMX tiles on and off
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use paraformer::kernels::{Ctx, Matrix, Precision};
@@ -127,5 +129,34 @@ fn xfeat(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, end_to_end, shipped, parts, xfeat);
+/// The width-96 configuration (3 heads of 32, 4 layers, 25 Sinkhorn iterations) at 2048
+/// keypoints: fp32, bf16 on AVX-512 BF16 and bf16 on AMX tiles, end to end and one layer.
+/// Where the CPU lacks AMX the last two are the same kernels.
+fn amx(c: &mut Criterion) {
+    let mut g = c.benchmark_group("amx");
+    g.sample_size(10);
+    let mut cfg = shipped_config(3);
+    (cfg.dim, cfg.sinkhorn_iterations) = (96, 25);
+    let base = Matcher::random(cfg, 0).expect("random weights");
+    let (f0, f1) = (Features::random(2048, 64, 1), Features::random(2048, 64, 2));
+    let layer = ParallelLayer::new(96, 3, ParallelSwitches::default(), random_var_builder(3).pp("l")).expect("layer");
+    let (x, y) = (random_matrix(2048, 96, 4), random_matrix(2048, 96, 5));
+    eprintln!("AMX tiles supported here: {}", paraformer::amx::supported());
+    for (name, p, tiles) in [("fp32", Precision::Fp32, false), ("bf16_avx512", Precision::Bf16, false), ("bf16_amx", Precision::Bf16, true)] {
+        let m = base.clone().with_precision(p);
+        let ctx = Ctx::with_precision(p);
+        g.bench_function(format!("w96_h3_2048/{name}"), |b| {
+            paraformer::amx::set_enabled(tiles);
+            b.iter(|| m.match_pair_with(&f0, &f1, MatchOptions::default()).expect("runs"))
+        });
+        g.bench_function(format!("layer_c96_h3_2048/{name}"), |b| {
+            paraformer::amx::set_enabled(tiles);
+            b.iter(|| layer.forward(&ctx, &x, &y, false).expect("runs"))
+        });
+    }
+    paraformer::amx::set_enabled(true);
+    g.finish();
+}
+
+criterion_group!(benches, end_to_end, shipped, parts, xfeat, amx);
 criterion_main!(benches);
