@@ -560,6 +560,13 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
     if ky.cols != c || vx.cols != c || vy.cols != c || vx.rows != m || vy.rows != n || heads == 0 || c % heads != 0 || !vx.fits() || !vy.fits() || !runs(c / heads, bf16) {
         return Err(internal(format!("fused cross attention qx {m}×{c}, ky {n}×{}, {heads} heads", ky.cols)));
     }
+    if bf16 && crate::amx::active() {
+        // On AMX tiles the scores cost little next to the softmax: the column direction is
+        // cheaper as a second row pass over Sᵀ = ky·qxᵀ than as running column states.
+        let (out_x, _) = attention(qx, ky, vy, heads, false, true)?;
+        let (out_y, _) = attention(ky, qx, vx, heads, false, true)?;
+        return Ok((out_x, out_y));
+    }
     let (mut out_x, mut out_y) = (Matrix::zeros(m, c), Matrix::zeros(n, c));
     if m == 0 || n == 0 {
         return Ok((out_x, out_y));
