@@ -396,6 +396,34 @@ def test_training_attention_kernels_name_bad_arguments():
         assert str(e.value).startswith(f"{name}:"), (name, str(e.value))
 
 
+def test_amx_switch_keeps_the_matches_and_a_bad_environment_value_is_named():
+    """bf16 matchers run on AMX tiles where the CPU has them: switching them off (set_amx or
+    PARAFORMER_AMX=0) changes the kernels, not the matches beyond bf16 rounding; a bad
+    PARAFORMER_AMX makes the import fail with its name."""
+    n = paraformer._paraformer
+    supported = n.amx()
+    m = paraformer.Matcher.pretrained("paraformer-xfeat", precision="bf16")
+    sample = Path(__file__).resolve().parent.parent / "assets" / "sample"
+    f0, f1 = (paraformer.extract(sample / f"coffee_{i}.jpg", 1024) for i in (0, 1))
+    try:
+        n.set_amx(False)
+        assert n.amx() is False
+        off = m.match_dicts(f0, f1)["matches0"]
+        n.set_amx(True)
+        assert n.amx() is supported
+        on = m.match_dicts(f0, f1)["matches0"]
+    finally:
+        n.set_amx(True)
+    assert (off == on).mean() >= 0.99, (off != on).sum()
+    code = "import paraformer._paraformer as n; print(n.amx())"
+    env = {k: v for k, v in os.environ.items() if k != "PARAFORMER_AMX"}
+    out = subprocess.run([sys.executable, "-c", code], env=dict(env, PARAFORMER_AMX="0"), capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr
+    out = subprocess.run([sys.executable, "-c", code], env=dict(env, PARAFORMER_AMX="maybe"), capture_output=True, text=True)
+    assert out.returncode != 0
+    assert "PARAFORMER_AMX" in out.stderr and "maybe" in out.stderr and "expected" in out.stderr, out.stderr
+
+
 def test_allocator_is_chosen_by_the_environment_and_a_bad_value_is_named():
     """The native code's allocator: mimalloc by default, the system's with
     PARAFORMER_ALLOCATOR=system; another value makes the import fail with its name."""

@@ -295,7 +295,8 @@ fn run(cli: Cli) -> paraformer::Result<()> {
         Command::Bench { model, keypoints, repeat } => {
             println!("simd: {}, threads: {}, allocator: {}", paraformer::kernels::simd_name(), rayon_threads(), paraformer::allocator::name());
             println!("{:<13} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>11}", "model", "kp", "total ms", "encoder", "layers", "final", "sinkhorn", "extract", "GFLOP/s net");
-            println!("precision: {} (runs as {})", precision().name(), precision().effective().name());
+            let tiles = if precision().effective() == paraformer::Precision::Bf16 && paraformer::amx::active() { ", on AMX tiles" } else { "" };
+            println!("precision: {} (runs as {}{tiles})", precision().name(), precision().effective().name());
             for name in &model {
                 let cfg = bench_config(name)?;
                 let matcher = Matcher::random(cfg.clone(), 0)?.with_precision(precision());
@@ -617,7 +618,7 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
 static GLOBAL: paraformer::allocator::ProcessAllocator = paraformer::allocator::ProcessAllocator;
 
 fn main() -> ExitCode {
-    if let Err(e) = paraformer::allocator::check_env() {
+    if let Err(e) = paraformer::allocator::check_env().and_then(|_| paraformer::amx::check_env()) {
         eprintln!("error: {e}");
         return ExitCode::FAILURE;
     }

@@ -231,3 +231,26 @@ fn allocator_is_chosen_by_the_environment_and_reported() {
     assert!(!ok);
     assert!(err.contains("PARAFORMER_ALLOCATOR") && err.contains("\"jemalloc\"") && err.contains("expected"), "{err}");
 }
+
+/// `PARAFORMER_AMX=0` keeps bf16 off the AMX tiles (the bench header says whether they run);
+/// any value but 0, 1, on, off, true or false is refused by name.
+#[test]
+fn amx_switch_is_read_from_the_environment_and_a_bad_value_is_named() {
+    let bench = |value: &str| {
+        let out = Command::new(env!("CARGO_BIN_EXE_paraformer"))
+            .args(["bench", "--model", "paraformer-xfeat", "--keypoints", "64", "--repeat", "1", "--precision", "bf16"])
+            .env("PARAFORMER_AMX", value)
+            .output()
+            .expect("binary runs");
+        (out.status.success(), String::from_utf8_lossy(&out.stdout).into_owned(), String::from_utf8_lossy(&out.stderr).into_owned())
+    };
+    let (ok, out, err) = bench("0");
+    assert!(ok && out.contains("precision: bf16") && !out.contains("AMX"), "{out}{err}");
+    let (ok, out, err) = bench("1");
+    assert!(ok, "{err}");
+    // On tiles exactly where the library says they are supported (bf16 needs AVX-512 BF16).
+    let expect = paraformer::amx::supported() && paraformer::Precision::Bf16.effective() == paraformer::Precision::Bf16;
+    assert_eq!(out.contains("on AMX tiles"), expect, "{out}");
+    let (ok, _, err) = bench("maybe");
+    assert!(!ok && err.contains("PARAFORMER_AMX") && err.contains("\"maybe\"") && err.contains("expected"), "{err}");
+}

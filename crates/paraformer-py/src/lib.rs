@@ -856,6 +856,29 @@ fn attention_bf16_available() -> bool {
     paraformer::attention_grad::available()
 }
 
+/// Whether bf16 matchers run their attention products and Linear layers on AMX tiles
+/// (Intel AMX-BF16, Sapphire Rapids and later; Linux grants the tile state per process).
+///
+/// Returns:
+///     True where the CPU has the tiles, the OS granted them and they are not turned off
+///     (`set_amx(False)` or `PARAFORMER_AMX=0`).
+#[pyfunction]
+#[pyo3(signature = ())]
+fn amx() -> bool {
+    paraformer::amx::active()
+}
+
+/// Turns the AMX tiles of bf16 matchers on or off for the whole process (off: the AVX-512
+/// BF16 kernels; for side-by-side timing). Where the CPU lacks AMX, on stays off.
+///
+/// Args:
+///     enabled: whether to use the tiles where the CPU has them.
+#[pyfunction]
+#[pyo3(signature = (enabled))]
+fn set_amx(enabled: bool) {
+    paraformer::amx::set_enabled(enabled)
+}
+
 // mimalloc unless PARAFORMER_ALLOCATOR=system (paraformer::allocator): only the module's own
 // Rust allocations use it (benches/allocator_compare.py).
 #[global_allocator]
@@ -865,6 +888,7 @@ static GLOBAL: paraformer::allocator::ProcessAllocator = paraformer::allocator::
 #[pymodule]
 fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
     paraformer::allocator::check_env().map_err(to_py_err)?;
+    paraformer::amx::check_env().map_err(to_py_err)?;
     m.add_class::<PyMatcher>()?;
     m.add_function(wrap_pyfunction!(flops, m)?)?;
     for f in [
@@ -886,6 +910,8 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(attention_backward_bf16, m)?,
         wrap_pyfunction!(attention_bf16_available, m)?,
         wrap_pyfunction!(allocator, m)?,
+        wrap_pyfunction!(amx, m)?,
+        wrap_pyfunction!(set_amx, m)?,
     ] {
         m.add_function(f)?;
     }

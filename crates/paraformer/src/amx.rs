@@ -12,7 +12,7 @@
 //!
 //! Linux grants the 8 KiB tile state per process on request (`arch_prctl`), so the tiles
 //! are used only where the CPU has them and that request succeeded; `PARAFORMER_AMX=0` or
-//! [`set_enabled`] turns them off (the AVX-512 BF16 kernels then run).
+//! [`set_enabled`] turns them off (the AVX-512 BF16 kernels then run). fp32 never uses them.
 
 #[cfg(target_arch = "x86_64")]
 use std::arch::asm;
@@ -36,10 +36,24 @@ pub fn set_enabled(on: bool) {
     ENABLED.store(on as u8, Ordering::Relaxed);
 }
 
+/// The environment variable that turns the tiles off (`0`, `off`, `false`) or leaves them
+/// on where supported (`1`, `on`, `true`; the default).
+pub const ENV: &str = "PARAFORMER_AMX";
+
+/// An error naming [`ENV`] when it holds anything but the values above (the kernels
+/// themselves treat such a value as the default).
+pub fn check_env() -> crate::Result<()> {
+    match std::env::var_os(ENV) {
+        None => Ok(()),
+        Some(v) if ["0", "1", "on", "off", "true", "false"].iter().any(|ok| v == *ok) => Ok(()),
+        Some(v) => Err(crate::Error::InvalidInput { argument: ENV.into(), reason: format!("{v:?}: expected 0, 1, on, off, true or false") }),
+    }
+}
+
 fn enabled() -> bool {
     match ENABLED.load(Ordering::Relaxed) {
         u8::MAX => {
-            let on = !matches!(std::env::var("PARAFORMER_AMX").as_deref(), Ok("0" | "off" | "false"));
+            let on = !matches!(std::env::var(ENV).as_deref(), Ok("0" | "off" | "false"));
             // A concurrent `set_enabled` wins over the environment.
             let _ = ENABLED.compare_exchange(u8::MAX, on as u8, Ordering::Relaxed, Ordering::Relaxed);
             ENABLED.load(Ordering::Relaxed) == 1
