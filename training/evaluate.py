@@ -113,12 +113,13 @@ def matcher_spec(spec: str) -> tuple[str, str, dict]:
     return label, path, override
 
 
-def load_matcher(path: str, override: dict):
-    """The weights file's matcher with ``matcher_spec``'s config overrides applied."""
+def load_matcher(path: str, override: dict, precision: str = "fp32"):
+    """The weights file's matcher with ``matcher_spec``'s config overrides applied, in
+    ``precision`` (bf16 runs as fp32 on CPUs without AVX-512 BF16)."""
     import paraformer
 
-    m = paraformer.Matcher.from_file(path)
-    return paraformer.Matcher(dict(m.config, **override), path) if override else m
+    m = paraformer.Matcher.from_file(path, precision=precision)
+    return paraformer.Matcher(dict(m.config, **override), path, precision=precision) if override else m
 
 
 def main() -> None:
@@ -133,6 +134,8 @@ def main() -> None:
                     help="extra weights file rows; @THRESHOLD and :ITERATIONS override the file's "
                          "match_threshold and sinkhorn_iterations")
     ap.add_argument("--no-lighterglue", action="store_true")
+    ap.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                    help="arithmetic of the ParaFormer rows (bf16: AVX-512 BF16, on AMX tiles where present)")
     ap.add_argument("--ransac-seeds", type=int, default=10, help="RANSAC seeds each AUC is averaged over")
     ap.add_argument("--json", required=True)
     ap.add_argument("--markdown")
@@ -158,7 +161,9 @@ def main() -> None:
             print(f"skipping {label}: same file and settings as {seen[key]}", file=sys.stderr)
             continue
         seen[key] = label
-        m = load_matcher(path, override)
+        m = load_matcher(path, override, args.precision)
+        if m.precision != "fp32":
+            label += f" ({m.precision})"
         matchers.append((label, lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
 
     sets = {"synthetic": synth_pairs(args.shared, args.cache, args.pairs),
@@ -181,7 +186,8 @@ def main() -> None:
                   f"({time.time() - t0:.0f} s)", flush=True)
         tables[str(k)] = rows
     meta = {"keypoints": args.keypoints, "pairs": {s: len(p) for s, p in sets.items()}, "threads": args.threads,
-            "ransac_seeds": args.ransac_seeds, "previous": args.previous, "command": " ".join(sys.argv)}
+            "ransac_seeds": args.ransac_seeds, "previous": args.previous, "precision": args.precision,
+            "amx": paraformer._paraformer.amx(), "command": " ".join(sys.argv)}
     os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
     json.dump({"meta": meta, "tables": tables}, open(args.json, "w"), indent=1)
     text = markdown(tables, args.threads, args.ransac_seeds)
