@@ -16,6 +16,9 @@
 
 #[cfg(target_arch = "x86_64")]
 use std::arch::asm;
+
+#[cfg(target_arch = "x86_64")]
+use crate::attention_fused::x86::{StripOut, MAX_D};
 use std::sync::atomic::{AtomicU8, Ordering};
 
 /// Whether the tile kernels may be used (set by [`set_enabled`], first read from
@@ -161,11 +164,12 @@ unsafe fn release() {
 ///
 /// # Safety
 /// [`active`]; `q` holds 16 rows of `D` values, `kp` `np/16` panels, `s` 16 rows of `ld ≥ np`
-/// floats; `np` is a multiple of 32 and `D` is 16, 32 or 64.
+/// floats; `np` is a multiple of 32 and `D` is 16, 32, 64 or 96.
 #[cfg(target_arch = "x86_64")]
 pub(crate) unsafe fn scores<const D: usize>(q: *const u16, kp: *const u16, n: usize, np: usize, s: *mut f32, ld: usize) {
-    const { assert!(D == 16 || D == 32 || D == 64) };
-    // One K step covers 32 channels (64 bytes of a query row); D = 64 takes two.
+    const { assert!(D == 16 || D == 32 || D == 64 || D == 96) };
+    // One K step covers 32 channels (64 bytes of a query row); D = 64 takes two, 96 three
+    // (query tiles 0, 1 and 6).
     let kw = D.min(32);
     let (q_colsb, k_rows) = ((kw * 2) as u16, (kw / 2) as u8);
     let cfg = TileConfig::new([(16, q_colsb), (16, q_colsb), (k_rows, 64), (k_rows, 64), (16, 64), (16, 64), (16, 64), (16, 64)]);
@@ -175,8 +179,11 @@ pub(crate) unsafe fn scores<const D: usize>(q: *const u16, kp: *const u16, n: us
     unsafe {
         cfg.load();
         asm!("tileloadd tmm0, [{q} + {qs}*1]", q = in(reg) q, qs = in(reg) qs, options(nostack, readonly));
-        if D == 64 {
+        if D >= 64 {
             asm!("tileloadd tmm1, [{q} + {qs}*1]", q = in(reg) q.add(32), qs = in(reg) qs, options(nostack, readonly));
+        }
+        if D == 96 {
+            asm!("tileloadd tmm6, [{q} + {qs}*1]", q = in(reg) q.add(64), qs = in(reg) qs, options(nostack, readonly));
         }
         let panel = 16 * D;
         // Two key panels against query tile $q (one K step of 32 channels), into tiles 4 and 5.
@@ -195,9 +202,12 @@ pub(crate) unsafe fn scores<const D: usize>(q: *const u16, kp: *const u16, n: us
             let (k0, k1) = (kp.add(p * panel), kp.add((p + 1) * panel));
             asm!("tilezero tmm4", "tilezero tmm5", options(nostack, nomem));
             k_step!("tmm0", k0, k1);
-            if D == 64 {
-                // Channels 32..64: the second half of each panel's 32 pair rows.
+            if D >= 64 {
+                // Channels 32..64: pair rows 16..32 of each panel (16 rows × 32 values on).
                 k_step!("tmm1", k0.add(512), k1.add(512));
+            }
+            if D == 96 {
+                k_step!("tmm6", k0.add(1024), k1.add(1024));
             }
             asm!(
                 "tilestored [{c0} + {cs}*1], tmm4",
@@ -221,12 +231,16 @@ pub(crate) unsafe fn scores<const D: usize>(q: *const u16, kp: *const u16, n: us
 /// # Safety
 /// [`active`]; `p16` holds 16 rows of `ld` values whose columns `n..` up to the next
 /// multiple of 32 are zero (and within `ld`); `v16` holds `n` rounded up to 32 rows;
-/// `D` is 16, 32 or 64.
+/// `D` is 16, 32, 64 or 96.
 #[cfg(target_arch = "x86_64")]
-pub(crate) unsafe fn values<const D: usize>(p16: *const u16, ld: usize, n: usize, v16: *const u16, out: &mut [[f32; 64]; 16]) {
-    const { assert!(D == 16 || D == 32 || D == 64) };
+pub(crate) unsafe fn values<const D: usize>(p16: *const u16, ld: usize, n: usize, v16: *const u16, out: &mut StripOut) {
+    const { assert!(D == 16 || D == 32 || D == 64 || D == 96) };
+    if D == 96 {
+        // SAFETY: as for this function.
+        return unsafe { values_96(p16, ld, n, v16, out) };
+    }
     let cfg = TileConfig::new([(16, 64); 8]);
-    let (ps, vs, os) = (ld * 2, D * 4, 64usize * 4);
+    let (ps, vs, os) = (ld * 2, D * 4, MAX_D * 4);
     let o = out.as_mut_ptr() as *mut f32;
     // SAFETY: AMX per the caller; blocks of 32 keys read 16 rows × 64 bytes of `p16` at column
     // j0 < ld and 16 pairs × 16 columns of `v16` below n rounded up to 32; the results are
@@ -277,6 +291,52 @@ pub(crate) unsafe fn values<const D: usize>(p16: *const u16, ld: usize, n: usize
                 o2 = in(reg) o.add(32), o3 = in(reg) o.add(48), os = in(reg) os, options(nostack),
             );
         }
+        release();
+    }
+}
+
+/// [`values`] at head width 96: six accumulator tiles (2–7) of 16 columns, one value tile
+/// (1) loaded in turn.
+#[cfg(target_arch = "x86_64")]
+unsafe fn values_96(p16: *const u16, ld: usize, n: usize, v16: *const u16, out: &mut StripOut) {
+    const D: usize = 96;
+    let cfg = TileConfig::new([(16, 64); 8]);
+    let (ps, vs, os) = (ld * 2, D * 4, MAX_D * 4);
+    let o = out.as_mut_ptr() as *mut f32;
+    // SAFETY: as for `values`; value tile c reads columns 16c..16c+16 of 16 pair rows.
+    unsafe {
+        cfg.load_with_zero_accumulators();
+        asm!("tilezero tmm2", "tilezero tmm3", options(nostack, nomem));
+        // Value columns 16c..16c+16 into accumulator tile $acc.
+        macro_rules! column_block {
+            ($acc:literal, $b:expr) => {
+                asm!(
+                    "tileloadd tmm1, [{b} + {vs}*1]",
+                    concat!("tdpbf16ps ", $acc, ", tmm0, tmm1"),
+                    b = in(reg) $b, vs = in(reg) vs, options(nostack, readonly),
+                )
+            };
+        }
+        for j0 in (0..n.div_ceil(32) * 32).step_by(32) {
+            let b = v16.add(j0 * D);
+            asm!("tileloadd tmm0, [{a} + {ps}*1]", a = in(reg) p16.add(j0), ps = in(reg) ps, options(nostack, readonly));
+            column_block!("tmm2", b);
+            column_block!("tmm3", b.add(32));
+            column_block!("tmm4", b.add(64));
+            column_block!("tmm5", b.add(96));
+            column_block!("tmm6", b.add(128));
+            column_block!("tmm7", b.add(160));
+        }
+        asm!(
+            "tilestored [{o0} + {os}*1], tmm2",
+            "tilestored [{o1} + {os}*1], tmm3",
+            "tilestored [{o2} + {os}*1], tmm4",
+            "tilestored [{o3} + {os}*1], tmm5",
+            "tilestored [{o4} + {os}*1], tmm6",
+            "tilestored [{o5} + {os}*1], tmm7",
+            o0 = in(reg) o, o1 = in(reg) o.add(16), o2 = in(reg) o.add(32), o3 = in(reg) o.add(48),
+            o4 = in(reg) o.add(64), o5 = in(reg) o.add(80), os = in(reg) os, options(nostack),
+        );
         release();
     }
 }
@@ -365,7 +425,7 @@ pub(crate) mod tests {
         let _switch = SWITCH.lock().unwrap_or_else(|e| e.into_inner());
         let bf = Ctx::with_precision(Precision::Bf16);
         let amp = 2.0;
-        for &(m, n, c, heads) in &[(77, 53, 64, 4), (600, 301, 64, 2), (33, 517, 128, 2), (5, 1, 32, 2), (300, 300, 64, 1), (2048, 2048, 96, 3), (17, 64, 192, 3)] {
+        for &(m, n, c, heads) in &[(77, 53, 64, 4), (600, 301, 64, 2), (33, 517, 128, 2), (5, 1, 32, 2), (300, 300, 64, 1), (2048, 2048, 96, 3), (17, 64, 192, 3), (77, 53, 96, 1), (300, 517, 192, 2)] {
             let (q, k, v) = (random(m, c, 11, amp), random(n, c, 12, amp), random(n, c, 13, 1.0));
             let vx = random(m, c, 14, 1.0);
             let (want, _) = attention(&general(), q.view(), k.view(), v.view(), heads, false).expect("fp32");

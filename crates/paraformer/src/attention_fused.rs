@@ -96,13 +96,19 @@ impl CrossTasks {
     }
 }
 
+/// The widest head the AVX-512 kernels take (96: LighterGlue's one head at width 96).
+pub(crate) const MAX_D: usize = 96;
+/// One strip's value product: 16 rows of up to [`MAX_D`] floats.
+pub(crate) type StripOut = [[f32; MAX_D]; STRIP];
+
 /// Start of a running column maximum: finite, so that `exp2(start − max)` is 0, not NaN.
 pub(crate) const NEG: f32 = -1e30;
 
-/// Whether the fused kernels serve head width `d` here: AVX-512F at run time, or AVX2 and
-/// FMA for the fp32 kernels of [`crate::attention_fused_avx2`].
+/// Whether the fused kernels serve head width `d` here: AVX-512F at run time for 16, 32, 64
+/// and 96, or AVX2 and FMA for the fp32 kernels of [`crate::attention_fused_avx2`] (16, 32, 64).
 pub fn available(d: usize) -> bool {
-    matches!(d, 16 | 32 | 64) && crate::kernels::simd_level() >= 3
+    let level = crate::kernels::simd_level();
+    (matches!(d, 16 | 32 | 64) && level >= 3) || (d == 96 && level >= 4)
 }
 
 /// Whether this CPU runs the bf16 kernels (AVX-512 BF16 at run time).
@@ -334,8 +340,8 @@ unsafe fn exp_row(s: *mut f32, np: usize, p16: Option<*mut u16>) -> f32 {
 
 /// `out[r][..D] = inv[r] · Σ_j p[r][j]·v[j][..D]` for 16 rows (fp32; `v` strided).
 #[inline(always)]
-unsafe fn values_f32<const D: usize>(p: *const f32, ld: usize, n: usize, v: *const f32, v_stride: usize, out: &mut [[f32; 64]; STRIP]) {
-    const { assert!(D.is_multiple_of(16) && D <= 64) };
+unsafe fn values_f32<const D: usize>(p: *const f32, ld: usize, n: usize, v: *const f32, v_stride: usize, out: &mut StripOut) {
+    const { assert!(D.is_multiple_of(16) && D <= MAX_D) };
     let dv = D / 16;
     // Tiles of R rows × D columns with R·dv = 16 accumulators.
     let rows = 16 / dv;
@@ -343,7 +349,7 @@ unsafe fn values_f32<const D: usize>(p: *const f32, ld: usize, n: usize, v: *con
         let mut acc = [_mm512_setzero_ps(); 16];
         for j in 0..n {
             let vp = v.add(j * v_stride);
-            let mut vr = [_mm512_setzero_ps(); 4];
+            let mut vr = [_mm512_setzero_ps(); MAX_D / 16];
             for (c, x) in vr.iter_mut().enumerate().take(dv) {
                 *x = _mm512_loadu_ps(vp.add(c * 16));
             }
@@ -365,14 +371,14 @@ unsafe fn values_f32<const D: usize>(p: *const f32, ld: usize, n: usize, v: *con
 /// The same from bf16 probabilities `p16` (`[16][np]`) and values packed by
 /// [`pack_values_bf16`] (pairs of rows; `n` rounded up to even, padding is zero).
 #[inline(always)]
-pub(crate) unsafe fn values_bf16<const D: usize>(p16: *const u16, ld: usize, n: usize, v16: *const u16, out: &mut [[f32; 64]; STRIP]) {
+pub(crate) unsafe fn values_bf16<const D: usize>(p16: *const u16, ld: usize, n: usize, v16: *const u16, out: &mut StripOut) {
     let dv = D / 16;
     let rows = 16 / dv;
     for r0 in (0..STRIP).step_by(rows) {
         let mut acc = [_mm512_setzero_ps(); 16];
         for j2 in 0..n.div_ceil(2) {
             let vp = v16.add(j2 * D * 2);
-            let mut vr: [__m512bh; 4] = [std::mem::transmute::<__m512i, __m512bh>(_mm512_setzero_si512()); 4];
+            let mut vr: [__m512bh; MAX_D / 16] = [std::mem::transmute::<__m512i, __m512bh>(_mm512_setzero_si512()); MAX_D / 16];
             for (c, x) in vr.iter_mut().enumerate().take(dv) {
                 *x = std::mem::transmute::<__m512i, __m512bh>(_mm512_loadu_si512(vp.add(c * 32) as *const _));
             }
@@ -432,10 +438,12 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool, bf16: 
                     match (d, bf16) {
                         (16, false) => self_strip_f32::<16>(&job, s, &mut cs),
                         (32, false) => self_strip_f32::<32>(&job, s, &mut cs),
-                        (_, false) => self_strip_f32::<64>(&job, s, &mut cs),
+                        (64, false) => self_strip_f32::<64>(&job, s, &mut cs),
+                        (_, false) => self_strip_f32::<96>(&job, s, &mut cs),
                         (16, true) => self_strip_bf16::<16>(&job, s, p16, &mut cs),
                         (32, true) => self_strip_bf16::<32>(&job, s, p16, &mut cs),
-                        (_, true) => self_strip_bf16::<64>(&job, s, p16, &mut cs),
+                        (64, true) => self_strip_bf16::<64>(&job, s, p16, &mut cs),
+                        (_, true) => self_strip_bf16::<96>(&job, s, p16, &mut cs),
                     }
                 }
                 cs
@@ -500,7 +508,7 @@ unsafe fn strip_rows<const D: usize, const BF: bool>(
         let p = BF.then(|| p16.as_mut_ptr().add(r * ld));
         *iv = 1.0 / exp_row(s.as_mut_ptr().add(r * ld), np, p);
     }
-    let mut out = [[0.0f32; 64]; STRIP];
+    let mut out: StripOut = [[0.0; MAX_D]; STRIP];
     if BF {
         // Values of head h: `np/2` pairs of rows (see `pack_values_bf16`).
         let vh = v16.as_ptr().add(h * np * D);
@@ -589,10 +597,12 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
                 match (d, bf16) {
                     (16, false) => cross_chunk_f32::<16>(&job),
                     (32, false) => cross_chunk_f32::<32>(&job),
-                    (_, false) => cross_chunk_f32::<64>(&job),
+                    (64, false) => cross_chunk_f32::<64>(&job),
+                    (_, false) => cross_chunk_f32::<96>(&job),
                     (16, true) => cross_chunk_bf16::<16>(&job),
                     (32, true) => cross_chunk_bf16::<32>(&job),
-                    (_, true) => cross_chunk_bf16::<64>(&job),
+                    (64, true) => cross_chunk_bf16::<64>(&job),
+                    (_, true) => cross_chunk_bf16::<96>(&job),
                 }
             }
         })
@@ -610,7 +620,7 @@ pub(crate) fn merge_columns(states: &[ColumnState], heads: usize, chunks: usize,
         for j in 0..n {
             let mx = parts.iter().fold(NEG, |a, s| a.max(s.max[j]));
             let mut sum = 0.0f32;
-            let mut acc = [0.0f32; 64];
+            let mut acc = [0.0f32; MAX_D];
             for s in &parts {
                 let f = (std::f32::consts::LN_2 * (s.max[j] - mx)).exp();
                 sum += s.sum[j] * f;
@@ -727,7 +737,7 @@ unsafe fn column_values_bf16<const D: usize>(s: *const f32, np: usize, ld: usize
             let mut acc = [_mm512_setzero_ps(); 16];
             for (p, ep) in e.iter().enumerate().take(pairs) {
                 let vp = vx16.add(p * D * 2);
-                let mut vr = [std::mem::transmute::<__m512i, __m512bh>(_mm512_setzero_si512()); 4];
+                let mut vr = [std::mem::transmute::<__m512i, __m512bh>(_mm512_setzero_si512()); MAX_D / 16];
                 for (cc, x) in vr.iter_mut().enumerate().take(dv) {
                     *x = std::mem::transmute::<__m512i, __m512bh>(_mm512_loadu_si512(vp.add(cc * 32) as *const _));
                 }
@@ -768,7 +778,7 @@ unsafe fn column_values<const D: usize>(s: *const f32, np: usize, ld: usize, row
             let mut acc = [_mm512_setzero_ps(); 16];
             for (r, er) in e.iter().enumerate().take(rows) {
                 let vp = vx.add(r * vx_stride);
-                let mut vr = [_mm512_setzero_ps(); 4];
+                let mut vr = [_mm512_setzero_ps(); MAX_D / 16];
                 for (cc, x) in vr.iter_mut().enumerate().take(dv) {
                     *x = _mm512_loadu_ps(vp.add(cc * 16));
                 }
@@ -828,7 +838,7 @@ pub(crate) mod tests {
             eprintln!("skipped: no AVX2 or AVX-512 here");
             return;
         }
-        for &(m, n, c, heads, amp) in &[(77, 53, 64, 4, 1.0), (600, 301, 64, 2, 2.0), (33, 517, 128, 2, 1.5), (5, 1, 32, 2, 1.0), (300, 300, 64, 1, 3.0), (2100, 40, 64, 2, 1.0)] {
+        for &(m, n, c, heads, amp) in &[(77, 53, 64, 4, 1.0), (600, 301, 64, 2, 2.0), (33, 517, 128, 2, 1.5), (5, 1, 32, 2, 1.0), (300, 300, 64, 1, 3.0), (2100, 40, 64, 2, 1.0), (77, 53, 96, 1, 1.0), (300, 517, 192, 2, 2.0)] {
             let (q, k, v) = (random(m, c, 1, amp), random(n, c, 2, amp), random(n, c, 3, 1.0));
             let (vx, ky) = (random(m, c, 4, 1.0), random(n, c, 5, amp));
             let (want, want_cs) = attention(&general(), q.view(), k.view(), v.view(), heads, true).expect("general");

@@ -137,7 +137,7 @@ mod x86 {
     use rayon::prelude::*;
 
     use super::{Inputs, KEY_BLOCK};
-    use crate::attention_fused::x86::{exp2v, lane_mask, scores_bf16, values_bf16, STRIP};
+    use crate::attention_fused::x86::{exp2v, lane_mask, scores_bf16, values_bf16, StripOut, MAX_D, STRIP};
     use crate::kernels::to_bf16;
 
     fn bf16_to_f32(x: u16) -> f32 {
@@ -268,7 +268,7 @@ mod x86 {
         let mut p16 = vec![0u16; STRIP * ld];
         let f = scale * std::f32::consts::LOG2_E;
         let factor = _mm512_set1_ps(f);
-        let mut out = [[0.0f32; 64]; STRIP];
+        let mut out: StripOut = [[0.0; MAX_D]; STRIP];
         for r0 in (0..n).step_by(STRIP) {
             scores_bf16::<D>(q.as_ptr().add(r0 * D), kp.as_ptr(), m, mp, s.as_mut_ptr(), ld);
             let mut sums = [0.0f32; STRIP];
@@ -381,7 +381,7 @@ mod x86 {
         let mut dk_blk = vec![0.0f32; KEY_BLOCK * D];
         let mut dv_blk = vec![0.0f32; KEY_BLOCK * D];
         let factor = _mm512_set1_ps(scale * std::f32::consts::LOG2_E);
-        let mut out = [[0.0f32; 64]; STRIP];
+        let mut out: StripOut = [[0.0; MAX_D]; STRIP];
         for j0 in (0..m).step_by(KEY_BLOCK) {
             let cols = KEY_BLOCK.min(m - j0); // valid keys of the block
             let width = cols.div_ceil(32) * 32; // packed (zero-padded) keys of the block
