@@ -64,36 +64,29 @@ mod x86 {
             return Err(internal(format!("bf16 gemm output {m}×{} (stride {dst_stride}) in {} values", c1 - c0, dst.len())));
         }
         let out = SharedMut(dst.as_mut_ptr());
-        if crate::amx::active() {
-            (0..m.div_ceil(BLOCK)).into_par_iter().for_each(|b| {
-                let (r0, r1) = (b * BLOCK, ((b + 1) * BLOCK).min(m));
-                // The block's rows as bf16 pairs, padded with zeros to 32 rows of k2p pairs.
-                let rows = (r1 - r0).div_ceil(32) * 32;
-                let mut a = vec![0u16; rows * k2p * 2];
-                for r in r0..r1 {
-                    for (d, &v) in a[(r - r0) * k2p * 2..].iter_mut().zip(x.row(r)) {
-                        *d = to_bf16(v);
-                    }
-                }
-                // SAFETY: AMX was checked above; block b alone writes rows r0..r1 of `dst`.
-                unsafe { amx_block(&a, r1 - r0, k2p, wp, np, c0, c1, out.at(r0 * dst_stride), dst_stride) };
-            });
-            return Ok(());
-        }
+        // AMX tiles take 32 rows at a time and K in steps of 16 pairs (the weights' padding).
+        let amx = crate::amx::active();
+        let (group, pairs) = if amx { (32, k2p) } else { (TILE, k2) };
         (0..m.div_ceil(BLOCK)).into_par_iter().for_each(|b| {
             let (r0, r1) = (b * BLOCK, ((b + 1) * BLOCK).min(m));
-            // The block's rows as bf16 pairs, padded with zero rows to whole tiles.
-            let rows = (r1 - r0).div_ceil(TILE) * TILE;
-            let mut a = vec![0u16; rows * k2 * 2];
+            // The block's rows as bf16 pairs (row stride `pairs`), padded with zero rows to
+            // whole groups.
+            let rows = (r1 - r0).div_ceil(group) * group;
+            let mut a = vec![0u16; rows * pairs * 2];
             for r in r0..r1 {
-                let dst_row = &mut a[(r - r0) * k2 * 2..];
-                for (t, &v) in x.row(r).iter().enumerate() {
-                    dst_row[t] = to_bf16(v);
+                for (d, &v) in a[(r - r0) * pairs * 2..].iter_mut().zip(x.row(r)) {
+                    *d = to_bf16(v);
                 }
             }
-            // SAFETY: AVX-512 BF16 was checked on entry; block b alone writes rows
-            // r0..r1 of `dst`, inside the bounds checked above.
-            unsafe { block(&a, r1 - r0, k2, wp, np, c0, c1, out.at(r0 * dst_stride), dst_stride) };
+            // SAFETY: AVX-512 BF16 (and AMX for `amx`) was checked above; block b alone writes
+            // rows r0..r1 of `dst`, inside the bounds checked above.
+            unsafe {
+                if amx {
+                    amx_block(&a, r1 - r0, k2p, wp, np, c0, c1, out.at(r0 * dst_stride), dst_stride)
+                } else {
+                    block(&a, r1 - r0, k2, wp, np, c0, c1, out.at(r0 * dst_stride), dst_stride)
+                }
+            };
         });
         Ok(())
     }

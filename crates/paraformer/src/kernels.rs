@@ -121,7 +121,7 @@ pub enum Precision {
     Fp32,
     /// bf16 operands with fp32 accumulation, where the CPU has AVX-512 BF16 (see
     /// [`Precision::effective`]), on AMX tiles where it also has AMX-BF16 ([`crate::amx`]):
-    /// the attention products at head widths 16, 32 and 64,
+    /// the attention products at head widths 16, 32, 64 and 96,
     /// the attention layers' Linear layers, Wave-PE's descriptor and wave MLPs, and
     /// Sinkhorn's kernel. Softmax, maxima and sums, LayerNorm, the position MLPs, the
     /// final projection, the score matrix and every layer whose attention column sums
