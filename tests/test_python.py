@@ -424,6 +424,36 @@ def test_amx_switch_keeps_the_matches_and_a_bad_environment_value_is_named():
     assert "PARAFORMER_AMX" in out.stderr and "maybe" in out.stderr and "expected" in out.stderr, out.stderr
 
 
+def test_simd_cap_keeps_the_matches_and_a_bad_environment_value_is_named(tmp_path):
+    """PARAFORMER_SIMD=avx2 or baseline runs the narrower kernels (the AVX2 fused attention,
+    the scalar general path) on a wider CPU: the same matches beyond float rounding; a bad
+    value makes the import fail with its name."""
+    sample = Path(__file__).resolve().parent.parent / "assets" / "sample"
+    f0, f1 = (paraformer.extract(sample / f"coffee_{i}.jpg", 1024) for i in (0, 1))
+    feats = tmp_path / "feats.npz"
+    np.savez(feats, **{f"{k}{i}": v for i, f in enumerate((f0, f1)) for k, v in f.items()})
+    want = paraformer.Matcher.pretrained("paraformer-xfeat").match_dicts(f0, f1)["matches0"]
+    code = (
+        "import sys, numpy as np, paraformer, paraformer._paraformer as n\n"
+        "z = np.load(sys.argv[1]); f = [{k[:-1]: z[k] for k in z.files if k.endswith(str(i))} for i in (0, 1)]\n"
+        "np.save(sys.argv[2], paraformer.Matcher.pretrained('paraformer-xfeat').match_dicts(*f)['matches0'])\n"
+        "print(n.simd())"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PARAFORMER_SIMD"}
+    widest = paraformer._paraformer.simd()
+    for level in ("avx2", "baseline"):
+        got_path = tmp_path / f"{level}.npy"
+        out = subprocess.run([sys.executable, "-c", code, str(feats), str(got_path)], env=dict(env, PARAFORMER_SIMD=level),
+                             capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip() == (level if widest != "baseline" else "baseline"), out.stdout
+        got = np.load(got_path)
+        assert (got == want).mean() >= 0.99, (level, (got != want).sum())
+    out = subprocess.run([sys.executable, "-c", "import paraformer"], env=dict(env, PARAFORMER_SIMD="sse9"), capture_output=True, text=True)
+    assert out.returncode != 0
+    assert "PARAFORMER_SIMD" in out.stderr and "sse9" in out.stderr and "expected" in out.stderr, out.stderr
+
+
 def test_allocator_is_chosen_by_the_environment_and_a_bad_value_is_named():
     """The native code's allocator: mimalloc by default, the system's with
     PARAFORMER_ALLOCATOR=system; another value makes the import fail with its name."""

@@ -618,7 +618,14 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
 static GLOBAL: paraformer::allocator::ProcessAllocator = paraformer::allocator::ProcessAllocator;
 
 fn main() -> ExitCode {
-    if let Err(e) = paraformer::allocator::check_env().and_then(|_| paraformer::amx::check_env()) {
+    // Output into a closed pipe (`paraformer bench | head`) ends the process quietly, as other
+    // command-line tools do, instead of a panic in `println!` (Rust ignores SIGPIPE).
+    #[cfg(unix)]
+    // SAFETY: restores the default disposition before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+    if let Err(e) = paraformer::allocator::check_env().and_then(|_| paraformer::amx::check_env()).and_then(|_| paraformer::kernels::check_env()) {
         eprintln!("error: {e}");
         return ExitCode::FAILURE;
     }

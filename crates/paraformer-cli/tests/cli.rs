@@ -232,6 +232,51 @@ fn allocator_is_chosen_by_the_environment_and_reported() {
     assert!(err.contains("PARAFORMER_ALLOCATOR") && err.contains("\"jemalloc\"") && err.contains("expected"), "{err}");
 }
 
+/// Output into a pipe the reader closed early ends the process without a panic message.
+#[cfg(unix)]
+#[test]
+fn closed_stdout_pipe_ends_quietly() {
+    use std::io::{BufRead, BufReader};
+    use std::process::Stdio;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_paraformer"))
+        .args(["bench", "--model", "paraformer-xfeat", "--keypoints", "64", "--keypoints", "128", "--keypoints", "256", "--repeat", "1"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("binary runs");
+    let mut first = String::new();
+    BufReader::new(child.stdout.take().expect("stdout")).read_line(&mut first).expect("first line");
+    // The reader is gone: the next lines go into a closed pipe.
+    let out = child.wait_with_output().expect("binary ends");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(first.starts_with("simd:"), "{first}");
+    assert!(!err.contains("panicked") && !err.contains("Broken pipe"), "{err}");
+}
+
+/// `PARAFORMER_SIMD` caps the level of the project's kernels (the bench header names the level
+/// that runs, never one above the CPU's); any value but a level's name is refused by name.
+#[test]
+fn simd_cap_is_read_from_the_environment_and_a_bad_value_is_named() {
+    let bench = |value: &str| {
+        let out = Command::new(env!("CARGO_BIN_EXE_paraformer"))
+            .args(["bench", "--model", "paraformer-xfeat", "--keypoints", "64", "--repeat", "1"])
+            .env("PARAFORMER_SIMD", value)
+            .output()
+            .expect("binary runs");
+        (out.status.success(), String::from_utf8_lossy(&out.stdout).into_owned(), String::from_utf8_lossy(&out.stderr).into_owned())
+    };
+    let widest = paraformer::kernels::simd_name();
+    let (ok, out, err) = bench("avx512");
+    assert!(ok && out.contains(&format!("simd: {widest},")), "{out}{err}");
+    let (ok, out, err) = bench("avx2");
+    let capped = if widest == "baseline" { "baseline" } else { "avx2" };
+    assert!(ok && out.contains(&format!("simd: {capped},")), "{out}{err}");
+    let (ok, out, err) = bench("baseline");
+    assert!(ok && out.contains("simd: baseline,"), "{out}{err}");
+    let (ok, _, err) = bench("sse9");
+    assert!(!ok && err.contains("PARAFORMER_SIMD") && err.contains("\"sse9\"") && err.contains("expected"), "{err}");
+}
+
 /// `PARAFORMER_AMX=0` keeps bf16 off the AMX tiles (the bench header says whether they run);
 /// any value but 0, 1, on, off, true or false is refused by name.
 #[test]

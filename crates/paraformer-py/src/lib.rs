@@ -834,6 +834,17 @@ fn attention_backward_bf16<'py>(
     Ok((PyBytes::new(py, &u16_bytes(&dq)), PyBytes::new(py, &u16_bytes(&dk)), PyBytes::new(py, &u16_bytes(&dv))))
 }
 
+/// The SIMD level of the module's own kernels: "avx512", "avx2" or "baseline", what the CPU
+/// has, or lower where `PARAFORMER_SIMD` (read at the first call) caps it.
+///
+/// Returns:
+///     The level's name.
+#[pyfunction]
+#[pyo3(signature = ())]
+fn simd() -> &'static str {
+    paraformer::kernels::simd_name()
+}
+
 /// The allocator of the module's native code: "mimalloc" (the default) or "system"
 /// (`PARAFORMER_ALLOCATOR=system` in the environment before the import).
 ///
@@ -889,6 +900,7 @@ static GLOBAL: paraformer::allocator::ProcessAllocator = paraformer::allocator::
 fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
     paraformer::allocator::check_env().map_err(to_py_err)?;
     paraformer::amx::check_env().map_err(to_py_err)?;
+    paraformer::kernels::check_env().map_err(to_py_err)?;
     m.add_class::<PyMatcher>()?;
     m.add_function(wrap_pyfunction!(flops, m)?)?;
     for f in [
@@ -910,6 +922,7 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(attention_backward_bf16, m)?,
         wrap_pyfunction!(attention_bf16_available, m)?,
         wrap_pyfunction!(allocator, m)?,
+        wrap_pyfunction!(simd, m)?,
         wrap_pyfunction!(amx, m)?,
         wrap_pyfunction!(set_amx, m)?,
     ] {

@@ -104,11 +104,10 @@ pub(crate) type StripOut = [[f32; MAX_D]; STRIP];
 /// Start of a running column maximum: finite, so that `exp2(start − max)` is 0, not NaN.
 pub(crate) const NEG: f32 = -1e30;
 
-/// Whether the fused kernels serve head width `d` here: AVX-512F at run time for 16, 32, 64
-/// and 96, or AVX2 and FMA for the fp32 kernels of [`crate::attention_fused_avx2`] (16, 32, 64).
+/// Whether the fused kernels serve head width `d` here (16, 32, 64 or 96): AVX-512F at run
+/// time, or AVX2 and FMA for the fp32 kernels of [`crate::attention_fused_avx2`].
 pub fn available(d: usize) -> bool {
-    let level = crate::kernels::simd_level();
-    (matches!(d, 16 | 32 | 64) && level >= 3) || (d == 96 && level >= 4)
+    matches!(d, 16 | 32 | 64 | 96) && crate::kernels::simd_level() >= 3
 }
 
 /// Whether this CPU runs the bf16 kernels (AVX-512 BF16 at run time).

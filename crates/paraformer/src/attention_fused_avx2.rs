@@ -1,4 +1,4 @@
-//! Fused fp32 attention for narrow heads (head width 16, 32 or 64) on CPUs with AVX2 and
+//! Fused fp32 attention (head width 16, 32, 64 or 96) on CPUs with AVX2 and
 //! FMA but no AVX-512, as most laptops have: the design of [`crate::attention_fused`]
 //! (SPEC §4–§5) with 8-lane registers. The same packing (queries pre-scaled by
 //! `log2(e)/√d`, keys in 16-column panels), strips of 16 query rows whose scores stay in
@@ -18,13 +18,13 @@ use std::arch::x86_64::*;
 
 use rayon::prelude::*;
 
-use crate::attention_fused::x86::{merge_columns, pack, ColumnState, CrossTasks, Packed, NEG, STRIP};
+use crate::attention_fused::x86::{merge_columns, pack, ColumnState, CrossTasks, Packed, StripOut, MAX_D, NEG, STRIP};
 use crate::error::Result;
 use crate::kernels::{internal, sum_in_order, Matrix, SharedMut, View};
 
 /// Whether these kernels run here and serve head width `d`.
 fn runs(d: usize) -> bool {
-    matches!(d, 16 | 32 | 64) && crate::kernels::simd_level() >= 3
+    matches!(d, 16 | 32 | 64 | 96) && crate::kernels::simd_level() >= 3
 }
 
 /// Values of every head contiguous, `[H][n][d]`: the value product streams one head's
@@ -179,8 +179,8 @@ unsafe fn exp_row(s: *mut f32, np: usize) -> (f32, f32) {
 /// `out[r][..D] = Σ_j p[r][j]·v[j][..D]` for 16 rows (`v` strided), in tiles of up to
 /// 6 rows × 16 columns ([`TILES`]).
 #[inline(always)]
-unsafe fn values<const D: usize>(p: *const f32, ld: usize, n: usize, v: *const f32, v_stride: usize, out: &mut [[f32; 64]; STRIP]) {
-    const { assert!(D.is_multiple_of(16) && D <= 64) };
+unsafe fn values<const D: usize>(p: *const f32, ld: usize, n: usize, v: *const f32, v_stride: usize, out: &mut StripOut) {
+    const { assert!(D.is_multiple_of(16) && D <= MAX_D) };
     for c in (0..D).step_by(16) {
         for (r0, rows) in TILES {
             let mut tile = [[0.0f32; 16]; 6];
@@ -227,7 +227,7 @@ unsafe fn strip_rows<const D: usize>(pk: &Packed, h: usize, r0: usize, rows: usi
         let (sum, mx) = exp_row(s.as_mut_ptr().add(r * ld), np);
         (inv[r], top[r]) = (1.0 / sum, mx);
     }
-    let mut out = [[0.0f32; 64]; STRIP];
+    let mut out: StripOut = [[0.0; MAX_D]; STRIP];
     values::<D>(s.as_ptr(), ld, n, vp.as_ptr().add(h * n * D), D, &mut out);
     for (r, o) in out.iter().enumerate().take(rows) {
         let row = dst.at((r0 + r) * c + h * D);
@@ -248,7 +248,7 @@ unsafe fn strip_scores<const D: usize>(pk: &Packed, h: usize, r0: usize, s: &mut
 
 /// `softmax(q·kᵀ/√d)·v` for every head, with optional column sums of the probabilities
 /// (`Σ_h Σ_i A[h,i,j]`), as [`crate::attention::attention`] in fp32; an error where this
-/// CPU lacks AVX2 and FMA or the head width is not 16, 32 or 64.
+/// CPU lacks AVX2 and FMA or the head width is not 16, 32, 64 or 96.
 pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool) -> Result<(Matrix, Option<Vec<f32>>)> {
     let (m, n, c) = (q.rows, k.rows, q.cols);
     if k.cols != c || v.cols != c || v.rows != n || heads == 0 || c % heads != 0 || !v.fits() || !runs(c / heads) {
@@ -275,7 +275,8 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool) -> Res
                     match d {
                         16 => self_strip::<16>(&pk, &vp, h, st, dst, s, &mut cs),
                         32 => self_strip::<32>(&pk, &vp, h, st, dst, s, &mut cs),
-                        _ => self_strip::<64>(&pk, &vp, h, st, dst, s, &mut cs),
+                        64 => self_strip::<64>(&pk, &vp, h, st, dst, s, &mut cs),
+                        _ => self_strip::<96>(&pk, &vp, h, st, dst, s, &mut cs),
                     }
                 }
                 cs
@@ -333,7 +334,8 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
                 match d {
                     16 => cross_chunk_one_scale::<16>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<16>(&pk, vx, &vyp, h, rows, dx)),
                     32 => cross_chunk_one_scale::<32>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<32>(&pk, vx, &vyp, h, rows, dx)),
-                    _ => cross_chunk_one_scale::<64>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<64>(&pk, vx, &vyp, h, rows, dx)),
+                    64 => cross_chunk_one_scale::<64>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<64>(&pk, vx, &vyp, h, rows, dx)),
+                    _ => cross_chunk_one_scale::<96>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<96>(&pk, vx, &vyp, h, rows, dx)),
                 }
             }
         })
@@ -374,7 +376,7 @@ unsafe fn cross_chunk_one_scale<const D: usize>(pk: &Packed, vx: View, vyp: &[f3
             g = strip_top;
         }
         let mut w = [0.0f32; STRIP];
-        let mut xs = [[0.0f32; 64]; STRIP];
+        let mut xs: StripOut = [[0.0; MAX_D]; STRIP];
         for r in 0..rows {
             w[r] = (top[r] - g).exp2();
             let row = std::slice::from_raw_parts(vx.data.as_ptr().add((r0 + r) * vx.stride + h * D), D);
@@ -388,9 +390,9 @@ unsafe fn cross_chunk_one_scale<const D: usize>(pk: &Packed, vx: View, vyp: &[f3
                 for (jt, cols) in TILES {
                     let (ep, ap) = (s.as_ptr().add(j0 + jt), acc.as_mut_ptr().add((j0 + jt) * D + c));
                     if cols == 6 {
-                        column_tile::<D, 6>(ep, ld, rows, xs.as_ptr().cast::<f32>().add(c), 64, ap);
+                        column_tile::<D, 6>(ep, ld, rows, xs.as_ptr().cast::<f32>().add(c), MAX_D, ap);
                     } else {
-                        column_tile::<D, 4>(ep, ld, rows, xs.as_ptr().cast::<f32>().add(c), 64, ap);
+                        column_tile::<D, 4>(ep, ld, rows, xs.as_ptr().cast::<f32>().add(c), MAX_D, ap);
                     }
                 }
             }
@@ -431,7 +433,8 @@ pub(super) fn one_scale_holds(qx: View, ky: View, vx: View, vy: View, heads: usi
             match d {
                 16 => cross_chunk_one_scale::<16>(&pk, vx, &vyp, h, rows, dx).is_some(),
                 32 => cross_chunk_one_scale::<32>(&pk, vx, &vyp, h, rows, dx).is_some(),
-                _ => cross_chunk_one_scale::<64>(&pk, vx, &vyp, h, rows, dx).is_some(),
+                64 => cross_chunk_one_scale::<64>(&pk, vx, &vyp, h, rows, dx).is_some(),
+                _ => cross_chunk_one_scale::<96>(&pk, vx, &vyp, h, rows, dx).is_some(),
             }
         }
     })
@@ -584,7 +587,7 @@ mod tests {
             eprintln!("skipped: no AVX2 and FMA here");
             return;
         }
-        for &(m, n, c, heads, amp) in &[(77, 53, 64, 4, 1.0), (600, 301, 64, 2, 2.0), (33, 517, 128, 2, 1.5), (5, 1, 32, 2, 1.0), (300, 300, 64, 1, 3.0), (2100, 40, 64, 2, 1.0)] {
+        for &(m, n, c, heads, amp) in &[(77, 53, 64, 4, 1.0), (600, 301, 64, 2, 2.0), (33, 517, 128, 2, 1.5), (5, 1, 32, 2, 1.0), (300, 300, 64, 1, 3.0), (2100, 40, 64, 2, 1.0), (77, 53, 96, 1, 1.0), (300, 517, 192, 2, 2.0)] {
             let (q, k, v) = (random(m, c, 1, amp), random(n, c, 2, amp), random(n, c, 3, 1.0));
             let (vx, ky) = (random(m, c, 4, 1.0), random(n, c, 5, amp));
             let (want, want_cs) = general_attention(&general(), q.view(), k.view(), v.view(), heads, true).expect("general");

@@ -270,7 +270,25 @@ impl Ctx {
 
 // ---- run-time dispatch ----------------------------------------------------------
 
-/// 0 = baseline, 3 = AVX2+FMA, 4 = AVX-512.
+/// Caps the SIMD level of the project's own kernels: `avx512`, `avx2` or `baseline`. It
+/// never raises the level above what the CPU has, and the linear layers' `gemm` crate picks
+/// its own; for running, testing and timing the narrower kernels on a wider CPU.
+pub const SIMD_ENV: &str = "PARAFORMER_SIMD";
+
+/// The levels [`SIMD_ENV`] names, widest first.
+const SIMD_NAMES: [(&str, u8); 3] = [("avx512", 4), ("avx2", 3), ("baseline", 0)];
+
+/// An error naming [`SIMD_ENV`] when it holds anything but a level's name (the dispatch
+/// itself cannot report it: it runs such a value as unset).
+pub fn check_env() -> Result<()> {
+    match std::env::var_os(SIMD_ENV) {
+        None => Ok(()),
+        Some(v) if SIMD_NAMES.iter().any(|(name, _)| v == *name) => Ok(()),
+        Some(v) => Err(Error::InvalidInput { argument: SIMD_ENV.into(), reason: format!("{v:?}: expected \"avx512\", \"avx2\" or \"baseline\"") }),
+    }
+}
+
+/// 0 = baseline, 3 = AVX2+FMA, 4 = AVX-512: what the CPU has, capped by [`SIMD_ENV`].
 pub(crate) fn simd_level() -> u8 {
     static LEVEL: AtomicU8 = AtomicU8::new(u8::MAX);
     let l = LEVEL.load(Ordering::Relaxed);
@@ -287,11 +305,13 @@ pub(crate) fn simd_level() -> u8 {
     };
     #[cfg(not(target_arch = "x86_64"))]
     let l = 0;
+    let cap = std::env::var(SIMD_ENV).ok().and_then(|v| SIMD_NAMES.iter().find(|(name, _)| *name == v).map(|&(_, level)| level));
+    let l = l.min(cap.unwrap_or(4));
     LEVEL.store(l, Ordering::Relaxed);
     l
 }
 
-/// The SIMD level the element-wise kernels run at: "avx512", "avx2" or "baseline".
+/// The SIMD level the project's kernels run at: "avx512", "avx2" or "baseline".
 pub fn simd_name() -> &'static str {
     match simd_level() {
         4 => "avx512",
