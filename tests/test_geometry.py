@@ -156,6 +156,13 @@ def test_ground_truth_and_baselines_match_brute_force():
     np.testing.assert_array_equal(g.match_baseline(d0, d1, "mnn"), np.where(mutual, nn, -1))
     s = np.sort(dist, 1)
     np.testing.assert_array_equal(g.match_baseline(d0, d1, "ratio", 0.8), np.where(s[:, 0] < 0.8 * s[:, 1], nn, -1))
+    # A ratio outside (0, 1] (negative, NaN, above 1) would keep nothing or everything: refused by name.
+    from paraformer.pipeline import Baseline
+    for bad in (-1.0, 0.0, float("nan"), 1.5):
+        with pytest.raises(ValueError, match=r"^ratio: .*\(0, 1\]"):
+            g.match_baseline(d0, d1, "ratio", bad)
+        with pytest.raises(ValueError, match=r"ratio.*\(0, 1\]"):
+            Baseline(f"ratio:{bad}")
     pr = g.precision_recall(g.match_baseline(d0, d1, "mnn"), np.r_[np.arange(40), [-1] * 20])
     assert pr["recall"] == 1.0 and 0 < pr["precision"] <= 1.0
     acc = g.mma(np.eye(3), x0[:5], x0[:5] + [0.0, 2.5], np.arange(5), 3)

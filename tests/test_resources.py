@@ -44,6 +44,19 @@ def test_60000_keypoints_raise_resource_error_not_abort():
             m.match_dicts(f, f)
 
 
+def test_huge_array_image_is_refused_before_it_is_copied():
+    """A 10-gigapixel array was copied to bytes and to float32 before XFeat's memory check,
+    and the process was killed for memory: now the check comes first. (Broadcast views: the
+    test arrays hold no memory.)"""
+    for dtype in (np.uint8, np.float32):
+        huge = np.broadcast_to(np.zeros(1, dtype), (100_000, 100_000))
+        with pytest.raises(paraformer.ResourceError, match=r"XFeat on a 100000×100000 image needs .* GB"):
+            paraformer.extract(huge)
+    # Sizes whose byte counts overflow 64 bits (a broadcast view holds no memory) saturate.
+    with pytest.raises(paraformer.ResourceError):
+        paraformer.extract(np.broadcast_to(np.zeros(1, np.uint8), (2**31, 2**30, 3)))
+
+
 def test_limit_is_settable_and_applies_to_match_many_and_extract(limit_restored):
     m = paraformer.Matcher.pretrained("paraformer-xfeat")
     f0, f1 = _feats(512, seed=1), _feats(512, seed=2)

@@ -17,6 +17,7 @@ from ._paraformer import ParaformerError, ResourceError, WeightsError, _Matcher,
 from ._paraformer import memory_limit, set_memory_limit
 from ._paraformer import extract as _extract
 from ._paraformer import extract_file as _extract_file
+from ._paraformer import check_extract_memory as _check_extract_memory
 from ._paraformer import flops as _flops
 from ._paraformer import pretrained_names
 from . import features, geometry
@@ -318,6 +319,8 @@ def extract(image: Union[str, os.PathLike, ArrayLike], max_keypoints: int = 2048
         if arr.ndim != 3 or arr.shape[2] not in (1, 2, 3, 4):
             raise ValueError(f"image: expected shape [H, W] or [H, W, C] with C in 1..4, got {list(np.shape(image))}")
         h, w, c = arr.shape
+        # Before any copy: the copies alone of a huge array could exhaust the memory.
+        _check_extract_memory(h, w, c, 1 if arr.dtype == np.uint8 else 4)
         if arr.dtype == np.uint8:
             # Passed as is: a quarter of the bytes, converted in Rust.
             raw = _extract(np.ascontiguousarray(arr).tobytes(), h, w, c, int(max_keypoints), "u8", bool(subpixel))

@@ -5,9 +5,9 @@ from typing import Optional, Union, final
 __all__ = [
     "_Matcher", "flops", "find_homography", "find_fundamental", "find_relative_pose", "pose_auc",
     "pose_auc_approx", "homography_corner_error", "gt_matches_from_homography", "match_baseline",
-    "pretrained_names", "extract", "extract_file", "load_image", "set_memory_limit", "memory_limit",
+    "pretrained_names", "extract", "extract_file", "check_extract_memory", "load_image", "set_memory_limit", "memory_limit",
     "attention_forward_bf16", "attention_backward_bf16", "attention_bf16_available", "allocator",
-    "amx", "set_amx",
+    "amx", "set_amx", "simd",
     "ParaformerError", "WeightsError", "ResourceError", "__version__",
 ]
 
@@ -71,6 +71,7 @@ _Extracted = tuple[bytes, bytes, bytes, float, float]
 
 def extract(pixels: bytes, height: int, width: int, channels: int, top_k: int, dtype: str = ..., subpixel: bool = ...) -> _Extracted: ...
 def extract_file(path: Union[str, os.PathLike[str]], top_k: int, subpixel: bool = ...) -> _Extracted: ...
+def check_extract_memory(height: int, width: int, channels: int, item_bytes: int) -> None: ...
 def load_image(path: Union[str, os.PathLike[str]]) -> tuple[bytes, int, int]: ...
 def set_memory_limit(bytes: Optional[int]) -> None: ...
 def memory_limit() -> int: ...

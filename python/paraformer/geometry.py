@@ -137,7 +137,7 @@ def gt_matches_from_homography(H: Any, kpts0: Any, kpts1: Any, threshold: float 
 
 def match_baseline(desc0: Any, desc1: Any, method: str = "mnn", ratio: float = 0.8) -> np.ndarray:
     """Nearest neighbour (``"nn"``), mutual nearest neighbour (``"mnn"``) or Lowe's ratio
-    test (``"ratio"``) on Euclidean descriptor distances.
+    test (``"ratio"``, ``ratio`` in (0, 1]) on Euclidean descriptor distances.
 
     Returns:
         ``matches0`` int64 ``[M]`` (−1 = unmatched).

@@ -24,6 +24,8 @@ class Baseline:
             self.ratio = float(ratio) if ratio else 0.8
         except ValueError:
             raise ValueError(f"matcher: bad ratio in {spec!r}") from None
+        if not 0.0 < self.ratio <= 1.0:  # False for NaN too
+            raise ValueError(f"matcher: ratio in {spec!r} must be in (0, 1], e.g. 0.8")
         self.method = method
 
     def match_dicts(self, f0: dict, f1: dict) -> dict:

@@ -293,6 +293,12 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             }
         }
         Command::Bench { model, keypoints, repeat } => {
+            if keypoints.contains(&0) {
+                return Err(input_error("--keypoints", "must be at least 1"));
+            }
+            if repeat == 0 {
+                return Err(input_error("--repeat", "must be at least 1"));
+            }
             println!("simd: {}, threads: {}, allocator: {}", paraformer::kernels::simd_name(), rayon_threads(), paraformer::allocator::name());
             println!("{:<13} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>11}", "model", "kp", "total ms", "encoder", "layers", "final", "sinkhorn", "extract", "GFLOP/s net");
             let tiles = if precision().effective() == paraformer::Precision::Bf16 && paraformer::amx::active() { ", on AMX tiles" } else { "" };
@@ -301,10 +307,13 @@ fn run(cli: Cli) -> paraformer::Result<()> {
                 let cfg = bench_config(name)?;
                 let matcher = Matcher::random(cfg.clone(), 0)?.with_precision(precision());
                 for &k in &keypoints {
+                    // The limit first: the random features alone can exceed the memory.
+                    let needed = paraformer::memory::match_bytes(&cfg, k, k, rayon_threads());
+                    paraformer::memory::check(format!("a match of {k} × {k} keypoints"), needed, paraformer::memory::memory_limit())?;
                     let (f0, f1) = (Features::random(k, cfg.descriptor_dim, 1), Features::random(k, cfg.descriptor_dim, 2));
                     matcher.profile(&f0, &f1, MatchOptions::default())?;
                     let mut best: Option<paraformer::Profile> = None;
-                    for _ in 0..repeat.max(1) {
+                    for _ in 0..repeat {
                         let (_, p) = matcher.profile(&f0, &f1, MatchOptions::default())?;
                         if best.is_none_or(|b| p.total() < b.total()) {
                             best = Some(p);

@@ -107,6 +107,11 @@ fn match_errors_are_one_line() {
         (vec!["match", s0.as_str(), s1.as_str(), "--matcher", "nonsense"], "not nn, mnn"),
         (vec!["match", s0.as_str(), s1.as_str(), "--geometry", "affine"], "geometry"),
         (vec!["match", s0.as_str(), s1.as_str(), "--max-keypoints", "0"], "max-keypoints"),
+        (vec!["match", s0.as_str(), s1.as_str(), "--matcher", "ratio:-1"], "(0, 1]"),
+        (vec!["match", s0.as_str(), s1.as_str(), "--matcher", "ratio:NaN"], "(0, 1]"),
+        (vec!["match", s0.as_str(), s1.as_str(), "--matcher", "ratio:x"], "ratio:x"),
+        (vec!["bench", "--model", "paraformer-xfeat", "--keypoints", "0"], "--keypoints"),
+        (vec!["bench", "--model", "paraformer-xfeat", "--keypoints", "64", "--repeat", "0"], "--repeat"),
     ] {
         let (ok, out, err) = run(&args);
         assert!(!ok, "{args:?} succeeded: {out}");
@@ -119,6 +124,11 @@ fn match_errors_are_one_line() {
 fn memory_limit_refuses_with_a_one_line_error() {
     let (ok, _, err) = run(&["--memory-limit", "1M", "match", &sample("coffee_0.jpg"), &sample("coffee_1.jpg")]);
     assert!(!ok && err.contains("needs") && err.contains("limit of 1.0 MB") && err.trim().lines().count() == 1, "{err}");
+    // bench checks the limit before it makes its random features (which alone would not fit).
+    let (ok, _, err) = run(&["bench", "--model", "paraformer-xfeat", "--keypoints", "100000000", "--repeat", "1"]);
+    assert!(!ok && err.contains("100000000 × 100000000 keypoints needs") && err.trim().lines().count() == 1, "{err}");
+    let (ok, _, err) = run(&["bench", "--model", "paraformer-xfeat", "--keypoints", &usize::MAX.to_string(), "--repeat", "1"]);
+    assert!(!ok && err.contains("needs"), "{err}");
     let (ok, _, err) = run(&["--memory-limit", "lots", "flops"]);
     assert!(!ok && err.contains("8G"), "{err}");
 }

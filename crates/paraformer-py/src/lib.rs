@@ -547,7 +547,7 @@ fn gt_matches_from_homography(h: Vec<f64>, kpts0: PyBackedBytes, kpts1: PyBacked
 ///     desc1: `[N, D]` float32 little-endian bytes.
 ///     dim: D.
 ///     method: "nn", "mnn" or "ratio".
-///     ratio: Lowe's ratio for "ratio".
+///     ratio: Lowe's ratio for "ratio", in (0, 1].
 /// Returns:
 ///     matches0 as a list of int (−1 = unmatched).
 #[pyfunction]
@@ -556,7 +556,7 @@ fn match_baseline(desc0: PyBackedBytes, desc1: PyBackedBytes, dim: usize, method
     let m = match method {
         "nn" => Baseline::NearestNeighbour,
         "mnn" => Baseline::MutualNearestNeighbour,
-        "ratio" => Baseline::RatioTest { ratio },
+        "ratio" => Baseline::ratio_test(ratio).map_err(to_py_err)?,
         other => return Err(PyValueError::new_err(format!("method: expected nn, mnn or ratio, got {other:?}"))),
     };
     Ok(baselines::match_descriptors(&f32_from_le(&desc0), &f32_from_le(&desc1), dim, m))
@@ -642,6 +642,25 @@ fn extract(
     })
     .map(extracted)
     .map_err(to_py_err)
+}
+
+/// Checks, before an array's pixels are copied for `extract`, that XFeat on it fits the
+/// memory limit together with those copies (its bytes and their float32 values).
+///
+/// Args:
+///     height: H.
+///     width: W.
+///     channels: C.
+///     item_bytes: bytes per value of the copy (1 for uint8, 4 for float32).
+/// Raises:
+///     ResourceError: naming the bytes needed and the limit.
+#[pyfunction]
+#[pyo3(signature = (height, width, channels, item_bytes))]
+fn check_extract_memory(height: usize, width: usize, channels: usize, item_bytes: usize) -> PyResult<()> {
+    let values = (height as u64).saturating_mul(width as u64).saturating_mul(channels as u64);
+    let copies = values.saturating_mul(item_bytes as u64 + 4);
+    let needed = paraformer::memory::xfeat_bytes(width, height).saturating_add(copies);
+    paraformer::memory::check(format!("XFeat on a {width}×{height} image"), needed, paraformer::memory::memory_limit()).map_err(to_py_err)
 }
 
 /// XFeat keypoints and descriptors of an image file (PNG, JPEG, PNM, BMP, TIFF, WebP).
@@ -915,6 +934,7 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(pretrained_names, m)?,
         wrap_pyfunction!(extract, m)?,
         wrap_pyfunction!(extract_file, m)?,
+        wrap_pyfunction!(check_extract_memory, m)?,
         wrap_pyfunction!(load_image, m)?,
         wrap_pyfunction!(set_memory_limit, m)?,
         wrap_pyfunction!(memory_limit, m)?,

@@ -42,22 +42,23 @@ pub fn available_memory() -> Option<u64> {
 /// and the Sinkhorn kernel of the same size, the per-task attention score blocks and
 /// the activations (a slight over-estimate, never an under-estimate of the large parts).
 pub fn match_bytes(config: &Config, m: usize, n: usize, threads: usize) -> u64 {
+    // Saturating: a count too large to hold must fail the limit, not wrap below it.
     let (m, n) = (m as u64, n as u64);
-    let cells = (m + 1) * (n + 1);
+    let cells = m.saturating_add(1).saturating_mul(n.saturating_add(1));
     let widest_stage = match config.model {
         crate::config::ModelKind::ParaformerU => config.stage_dims.iter().copied().max().unwrap_or(0),
         _ => 0,
     };
     let width = config.model_dim().max(widest_stage).max(config.descriptor_dim) as u64;
-    let blocks = threads.max(1) as u64 * 64 * m.max(n) * 2;
-    let activations = (m + n) * width * 24;
-    4 * (2 * cells + blocks + activations)
+    let blocks = (threads.max(1) as u64 * 128).saturating_mul(m.max(n));
+    let activations = m.saturating_add(n).saturating_mul(width * 24);
+    cells.saturating_mul(2).saturating_add(blocks).saturating_add(activations).saturating_mul(4)
 }
 
 /// Bytes XFeat needs for a `width` × `height` image: the widest full- and half-resolution
 /// feature maps with their im2col buffers, the heatmaps and the decoded image.
 pub fn xfeat_bytes(width: usize, height: usize) -> u64 {
-    (width as u64) * (height as u64) * 4 * 48
+    (width as u64).saturating_mul(height as u64).saturating_mul(4 * 48)
 }
 
 /// `Ok` when `needed` fits `limit`, else [`Error::Resource`] naming `what`.

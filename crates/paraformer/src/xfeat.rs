@@ -78,11 +78,10 @@ impl GrayImage {
         if !(1..=4).contains(&channels) {
             return Err(Error::input("image", format!("{channels} channels; expected 1, 2, 3 or 4")));
         }
-        if data.len() != width * height * channels {
-            return Err(Error::input(
-                "image",
-                format!("{} values for a {width}×{height}×{channels} image (expected {})", data.len(), width * height * channels),
-            ));
+        let expected = width.checked_mul(height).and_then(|p| p.checked_mul(channels));
+        if expected != Some(data.len()) {
+            let expected = expected.map_or_else(|| "more than memory can hold".to_string(), |e| e.to_string());
+            return Err(Error::input("image", format!("{} values for a {width}×{height}×{channels} image (expected {expected})", data.len())));
         }
         let grey = match channels {
             1 => data.to_vec(),

@@ -349,6 +349,9 @@ fn xfeat_rejects_bad_images_with_named_errors() {
     assert!(msg(GrayImage::new(40, 40, vec![0.0; 10]).expect_err("short")).contains("40×40"));
     assert!(msg(GrayImage::from_channels(40, 40, 5, &[0.0; 8000]).expect_err("channels")).contains("5 channels"));
     assert!(msg(GrayImage::from_channels(40, 40, 3, &[0.0; 100]).expect_err("short rgb")).contains("40×40×3"));
+    // A size whose value count overflows is an error, not a wrapped count that might match.
+    let e = msg(GrayImage::from_channels(usize::MAX / 2 + 1, 2, 1, &[]).expect_err("overflow"));
+    assert!(e.contains("more than memory can hold"), "{e}");
     let mut nan = GrayImage::new(64, 64, vec![10.0; 64 * 64]).expect("image");
     nan.data[70] = f32::NAN;
     assert!(msg(xf.detect_and_compute(&nan, None).expect_err("NaN")).contains("non-finite pixel value at index 70"));

@@ -42,6 +42,18 @@ pub enum Baseline {
     },
 }
 
+impl Baseline {
+    /// Lowe's ratio test at `ratio`: finite, above 0 and at most 1 (a best distance is never
+    /// above the second best, so 1 keeps every nearest neighbour and 0 or less none).
+    pub fn ratio_test(ratio: f32) -> crate::Result<Self> {
+        if ratio.is_finite() && ratio > 0.0 && ratio <= 1.0 {
+            Ok(Baseline::RatioTest { ratio })
+        } else {
+            Err(crate::Error::input("ratio", format!("{ratio}: expected a number in (0, 1], e.g. 0.8")))
+        }
+    }
+}
+
 /// `matches0` `[M]` (−1 = unmatched) by a baseline.
 pub fn match_descriptors(d0: &[f32], d1: &[f32], dim: usize, method: Baseline) -> Vec<i64> {
     let (m, n) = (d0.len() / dim.max(1), d1.len() / dim.max(1));
@@ -100,5 +112,15 @@ mod tests {
         // Row 0: best 0.1, second 0.2 → ratio 0.5 < 0.8 kept; row 1: 0.1 vs 0.8 kept; row 2 kept.
         assert_eq!(match_descriptors(&d0, &d1, 2, Baseline::RatioTest { ratio: 0.4 }), vec![-1, 1, 2]);
         assert_eq!(match_descriptors(&[], &d1, 2, Baseline::NearestNeighbour), Vec::<i64>::new());
+    }
+
+    #[test]
+    fn ratio_outside_zero_to_one_is_refused_by_name() {
+        assert_eq!(Baseline::ratio_test(0.8).ok(), Some(Baseline::RatioTest { ratio: 0.8 }));
+        assert!(Baseline::ratio_test(1.0).is_ok());
+        for bad in [0.0, -1.0, 1.5, f32::NAN, f32::INFINITY] {
+            let e = Baseline::ratio_test(bad).expect_err("refused").to_string();
+            assert!(e.contains("ratio") && e.contains("(0, 1]"), "{bad}: {e}");
+        }
     }
 }

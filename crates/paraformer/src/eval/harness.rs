@@ -33,8 +33,8 @@ impl MatcherSpec {
             "nn" => Self::Baseline("NN".into(), Baseline::NearestNeighbour),
             "mnn" => Self::Baseline("mutual NN".into(), Baseline::MutualNearestNeighbour),
             s if s == "ratio" || s.starts_with("ratio:") => {
-                let ratio = s.strip_prefix("ratio:").map_or(Ok(0.8), str::parse::<f32>).map_err(|e| Error::input("matcher", e.to_string()))?;
-                Self::Baseline(format!("ratio test {ratio}"), Baseline::RatioTest { ratio })
+                let ratio = s.strip_prefix("ratio:").map_or(Ok(0.8), str::parse::<f32>).map_err(|e| Error::input("matcher", format!("`{s}`: {e}")))?;
+                Self::Baseline(format!("ratio test {ratio}"), Baseline::ratio_test(ratio)?)
             }
             name if crate::matcher::PRETRAINED.iter().any(|p| p.0 == name) => {
                 Self::Learned(name.to_string(), Box::new(Matcher::pretrained(name)?))
