@@ -44,6 +44,15 @@ def test_60000_keypoints_raise_resource_error_not_abort():
             m.match_dicts(f, f)
 
 
+def test_memory_limit_must_be_a_positive_int(limit_restored):
+    """0 would refuse every call; negatives, floats and bools are not sizes: each is named."""
+    for bad in (0, -1, 1.5, True, "8G", 2**64):
+        with pytest.raises(ValueError, match=r"^bytes: expected a positive int or None"):
+            paraformer.set_memory_limit(bad)
+    paraformer.set_memory_limit(np.int64(10**9))
+    assert paraformer.memory_limit() == 10**9
+
+
 def test_huge_array_image_is_refused_before_it_is_copied():
     """A 10-gigapixel array was copied to bytes and to float32 before XFeat's memory check,
     and the process was killed for memory: now the check comes first. (Broadcast views: the

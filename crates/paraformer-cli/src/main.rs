@@ -25,11 +25,11 @@ struct Cli {
     command: Command,
 }
 
-/// `8G`, `512M`, `64K` or plain bytes.
 fn parse_precision(s: &str) -> Result<paraformer::Precision, String> {
     paraformer::Precision::parse(s).map_err(|e| e.to_string())
 }
 
+/// `8G`, `512M`, `64K` or plain bytes; at least one byte (beyond `u64` it saturates).
 fn parse_bytes(s: &str) -> Result<u64, String> {
     let t = s.trim();
     let (num, mult) = match t.char_indices().last() {
@@ -46,8 +46,9 @@ fn parse_bytes(s: &str) -> Result<u64, String> {
         _ => (t, 1),
     };
     let v: f64 = num.trim().parse().map_err(|_| format!("expected a size such as 8G or 512M, got {s:?}"))?;
-    if !v.is_finite() || v <= 0.0 {
-        return Err(format!("expected a positive size, got {s:?}"));
+    // Below one byte (`0.5`) the limit would round to 0 and refuse every call.
+    if !v.is_finite() || v * (mult as f64) < 1.0 {
+        return Err(format!("expected a positive size of at least one byte, got {s:?}"));
     }
     Ok((v * mult as f64) as u64)
 }

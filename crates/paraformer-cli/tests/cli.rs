@@ -131,6 +131,10 @@ fn memory_limit_refuses_with_a_one_line_error() {
     assert!(!ok && err.contains("needs"), "{err}");
     let (ok, _, err) = run(&["--memory-limit", "lots", "flops"]);
     assert!(!ok && err.contains("8G"), "{err}");
+    for below_a_byte in ["0", "0.5", "1e-12G"] {
+        let (ok, _, err) = run(&["--memory-limit", below_a_byte, "flops"]);
+        assert!(!ok && err.contains("at least one byte"), "{below_a_byte}: {err}");
+    }
 }
 
 #[test]

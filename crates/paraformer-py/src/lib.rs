@@ -681,11 +681,23 @@ fn extract_file(py: Python<'_>, path: PathBuf, top_k: usize, subpixel: bool) -> 
 /// Sets the process-wide memory limit of matching and extraction.
 ///
 /// Args:
-///     bytes: the limit in bytes, or None for the default (90% of the available memory).
+///     bytes: the limit in bytes (a positive int), or None for the default (90% of the
+///         available memory).
+/// Raises:
+///     ValueError: for 0, a negative number, a bool or anything but an int.
 #[pyfunction]
 #[pyo3(signature = (bytes,))]
-fn set_memory_limit(bytes: Option<u64>) {
-    paraformer::memory::set_memory_limit(bytes);
+fn set_memory_limit(bytes: Option<&Bound<'_, PyAny>>) -> PyResult<()> {
+    let limit = match bytes {
+        None => None,
+        // A limit of 0 would refuse every call; a bool is an int to Python but not a size.
+        Some(b) => match (b.is_instance_of::<pyo3::types::PyBool>(), b.extract::<u64>()) {
+            (false, Ok(n)) if n > 0 => Some(n),
+            _ => return Err(PyValueError::new_err(format!("bytes: expected a positive int or None, got {}", b.repr()?))),
+        },
+    };
+    paraformer::memory::set_memory_limit(limit);
+    Ok(())
 }
 
 /// The memory limit in force, in bytes.
