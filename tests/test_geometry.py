@@ -192,6 +192,36 @@ def test_features_file_round_trip(tmp_path):
     np.testing.assert_allclose(h5["a.png"]["descriptors"], feats["a.png"]["descriptors"], rtol=1e-6)
 
 
+def test_parameters_that_cannot_work_are_named():
+    """A threshold of 0 used to read as "no hypothesis reached 4 inliers", max_iterations=0 as
+    "degenerate", a confidence of 1.5 or NaN was used as given, a negative int was an unnamed
+    OverflowError; AUC thresholds ≤ 0 and a corner error of a 0×0 image gave numbers."""
+    from paraformer import geometry as g
+
+    rng = np.random.default_rng(1)
+    p = rng.uniform(0, 500, (40, 2))
+    q = p + [5.0, -3.0]
+    K = np.array([[500.0, 0, 250], [0, 500, 250], [0, 0, 1]])
+    fits = [lambda **kw: g.find_homography(p, q, **kw), lambda **kw: g.find_fundamental(p, q, **kw),
+            lambda **kw: g.find_relative_pose(p, q, K, K, **kw)]
+    bad = [("threshold", 0.0), ("threshold", -1.0), ("threshold", float("nan")), ("confidence", 0.0),
+           ("confidence", 1.5), ("confidence", float("nan")), ("max_iterations", 0), ("max_iterations", -5),
+           ("seed", -1)]
+    for fit in fits:
+        for name, value in bad:
+            with pytest.raises(ValueError, match=rf"^{name}: "):
+                fit(**{name: value})
+    assert g.find_homography(p, q)["model"] is not None
+    for thresholds in ([5, 0], [-5, 10], [float("nan")]):
+        with pytest.raises(ValueError, match=r"^thresholds: "):
+            g.pose_auc([1.0, 2.0], thresholds)
+    with pytest.raises(ValueError, match=r"^thresholds: "):
+        g.pose_auc_approx([1.0, 2.0], [0, 5])
+    for w, h, name in ((0, 480, "width"), (640, -1, "height"), (640, float("inf"), "height")):
+        with pytest.raises(ValueError, match=rf"^{name}: "):
+            g.homography_corner_error(np.eye(3), np.eye(3), w, h)
+
+
 def test_complex_input_is_named_not_truncated():
     """A complex array would lose its imaginary part in a float cast: each entry point names it instead."""
     import paraformer

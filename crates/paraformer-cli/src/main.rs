@@ -405,9 +405,19 @@ struct Turn {
     fit: Fit,
 }
 
+/// RANSAC at `--threshold` pixels, checked (a threshold of 0 or less finds no inliers).
+fn ransac_config(threshold: f64) -> paraformer::Result<paraformer::geometry::RansacConfig> {
+    let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
+    cfg.validate().map_err(|e| match e {
+        paraformer::Error::InvalidInput { reason, .. } => input_error("--threshold", reason),
+        other => other,
+    })?;
+    Ok(cfg)
+}
+
 fn fit_model(geometry: &str, x0: &[[f64; 2]], x1: &[[f64; 2]], threshold: f64) -> paraformer::Result<Fit> {
-    use paraformer::geometry::{epipolar, homography, RansacConfig};
-    let cfg = RansacConfig { threshold, ..Default::default() };
+    use paraformer::geometry::{epipolar, homography};
+    let cfg = ransac_config(threshold)?;
     let rows = |m: &paraformer::nalgebra::Matrix3<f64>| (0..3).map(|r| (0..3).map(|c| m[(r, c)]).collect()).collect();
     let text = |m: &Vec<Vec<f64>>, sci: bool| {
         let row = |r: &Vec<f64>| r.iter().map(|v| if sci { format!("{v:.4e}") } else { format!("{v:.4}") }).collect::<Vec<_>>().join(", ");
@@ -465,6 +475,8 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
     if a.max_keypoints == 0 {
         return Err(input_error("--max-keypoints", "must be at least 1"));
     }
+    // Checked before the images are read, not after the matching.
+    ransac_config(a.threshold)?;
     if a.rotations != 1 && a.rotations != 4 {
         return Err(input_error("--rotations", format!("must be 1 or 4, got {}", a.rotations)));
     }
@@ -579,7 +591,7 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
         EvalTask::Homography { data, common: EvalArgs { features, matcher, json }, threshold } => {
             let pairs = if data.is_file() { datasets::read_homography_list(&data)? } else { datasets::read_hpatches_folder(&data)? };
             let feats = datasets::read_features(&features)?;
-            let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
+            let cfg = ransac_config(threshold)?;
             let mut rows = Vec::new();
             for m in &matcher {
                 let spec = matcher_spec(m)?;
@@ -603,7 +615,7 @@ fn eval(task: EvalTask) -> paraformer::Result<()> {
                 datasets::read_strecha(&data, max_gap)?
             };
             let feats = datasets::read_features(&features)?;
-            let cfg = paraformer::geometry::RansacConfig { threshold, ..Default::default() };
+            let cfg = ransac_config(threshold)?;
             let mut rows = Vec::new();
             for m in &matcher {
                 let spec = matcher_spec(m)?;

@@ -110,6 +110,8 @@ fn match_errors_are_one_line() {
         (vec!["match", s0.as_str(), s1.as_str(), "--matcher", "ratio:-1"], "(0, 1]"),
         (vec!["match", s0.as_str(), s1.as_str(), "--matcher", "ratio:NaN"], "(0, 1]"),
         (vec!["match", s0.as_str(), s1.as_str(), "--matcher", "ratio:x"], "ratio:x"),
+        (vec!["match", s0.as_str(), s1.as_str(), "--threshold", "0"], "--threshold"),
+        (vec!["match", s0.as_str(), s1.as_str(), "--threshold", "NaN"], "--threshold"),
         (vec!["bench", "--model", "paraformer-xfeat", "--keypoints", "0"], "--keypoints"),
         (vec!["bench", "--model", "paraformer-xfeat", "--keypoints", "64", "--repeat", "0"], "--repeat"),
     ] {

@@ -380,6 +380,16 @@ type Fit = (Option<Vec<f64>>, Vec<bool>, Option<String>);
 
 type Robust = fn(&[[f64; 2]], &[[f64; 2]], &RansacConfig) -> Result<RansacResult<Matrix3<f64>>, NoModel>;
 
+/// RANSAC parameters from Python, checked: a ValueError names the one that cannot work
+/// (Python ints of any sign arrive here, so the integer ranges are checked too).
+fn ransac_config(threshold: f64, confidence: f64, max_iterations: i128, seed: i128) -> PyResult<RansacConfig> {
+    let max_iterations = usize::try_from(max_iterations).map_err(|_| PyValueError::new_err(format!("max_iterations: {max_iterations}: expected at least 1")))?;
+    let seed = u64::try_from(seed).map_err(|_| PyValueError::new_err(format!("seed: {seed}: expected an int in [0, 2**64)")))?;
+    let cfg = RansacConfig { threshold, confidence, max_iterations, seed, ..Default::default() };
+    cfg.validate().map_err(to_py_err)?;
+    Ok(cfg)
+}
+
 /// Runs a robust estimator on two point buffers with the GIL released.
 fn robust_fit(py: Python<'_>, points0: &[u8], points1: &[u8], cfg: RansacConfig, estimate: Robust) -> Fit {
     py.detach(|| {
@@ -410,11 +420,11 @@ fn find_homography(
     points1: PyBackedBytes,
     threshold: f64,
     confidence: f64,
-    max_iterations: usize,
-    seed: u64,
-) -> Fit {
-    let cfg = RansacConfig { threshold, confidence, max_iterations, seed, ..Default::default() };
-    robust_fit(py, &points0, &points1, cfg, homography::find_homography)
+    max_iterations: i128,
+    seed: i128,
+) -> PyResult<Fit> {
+    let cfg = ransac_config(threshold, confidence, max_iterations, seed)?;
+    Ok(robust_fit(py, &points0, &points1, cfg, homography::find_homography))
 }
 
 /// Robust fundamental matrix (normalised 8-point in RANSAC, Sampson distance).
@@ -436,11 +446,11 @@ fn find_fundamental(
     points1: PyBackedBytes,
     threshold: f64,
     confidence: f64,
-    max_iterations: usize,
-    seed: u64,
-) -> Fit {
-    let cfg = RansacConfig { threshold, confidence, max_iterations, seed, ..Default::default() };
-    robust_fit(py, &points0, &points1, cfg, epipolar::find_fundamental)
+    max_iterations: i128,
+    seed: i128,
+) -> PyResult<Fit> {
+    let cfg = ransac_config(threshold, confidence, max_iterations, seed)?;
+    Ok(robust_fit(py, &points0, &points1, cfg, epipolar::find_fundamental))
 }
 
 /// Robust relative pose: essential matrix (8-point + manifold projection) in RANSAC,
@@ -468,11 +478,11 @@ fn find_relative_pose(
     k1: Vec<f64>,
     threshold: f64,
     confidence: f64,
-    max_iterations: usize,
-    seed: u64,
+    max_iterations: i128,
+    seed: i128,
 ) -> PyResult<(Option<(Vec<f64>, Vec<f64>, Vec<f64>)>, Vec<bool>, Option<String>)> {
     let (k0, k1) = (mat3(&k0)?, mat3(&k1)?);
-    let cfg = RansacConfig { threshold, confidence, max_iterations, seed, ..Default::default() };
+    let cfg = ransac_config(threshold, confidence, max_iterations, seed)?;
     Ok(py.detach(|| {
         let (x0, x1) = (points(&points0), points(&points1));
         match epipolar::find_relative_pose(&x0, &x1, &k0, &k1, &cfg) {
@@ -491,8 +501,17 @@ fn find_relative_pose(
 ///     One AUC per threshold.
 #[pyfunction]
 #[pyo3(signature = (errors, thresholds))]
-fn pose_auc(errors: Vec<f64>, thresholds: Vec<f64>) -> Vec<f64> {
-    metrics::auc(&errors, &thresholds)
+fn pose_auc(errors: Vec<f64>, thresholds: Vec<f64>) -> PyResult<Vec<f64>> {
+    positive_thresholds(thresholds.iter().copied())?;
+    Ok(metrics::auc(&errors, &thresholds))
+}
+
+/// AUC thresholds must be positive and finite: a recall curve up to 0 or below has no area.
+fn positive_thresholds(mut thresholds: impl Iterator<Item = f64>) -> PyResult<()> {
+    match thresholds.find(|t| !(t.is_finite() && *t > 0.0)) {
+        Some(t) => Err(PyValueError::new_err(format!("thresholds: {t}: expected positive finite values"))),
+        None => Ok(()),
+    }
 }
 
 /// Approximate (histogram) AUC: mean accuracy at the integer thresholds 1..=t.
@@ -504,8 +523,10 @@ fn pose_auc(errors: Vec<f64>, thresholds: Vec<f64>) -> Vec<f64> {
 ///     One value per threshold.
 #[pyfunction]
 #[pyo3(signature = (errors, thresholds))]
-fn pose_auc_approx(errors: Vec<f64>, thresholds: Vec<u32>) -> Vec<f64> {
-    metrics::auc_approx(&errors, &thresholds)
+fn pose_auc_approx(errors: Vec<f64>, thresholds: Vec<i64>) -> PyResult<Vec<f64>> {
+    positive_thresholds(thresholds.iter().map(|&t| t as f64))?;
+    let thresholds = thresholds.iter().map(|&t| u32::try_from(t).map_err(|_| PyValueError::new_err(format!("thresholds: {t}: too large")))).collect::<PyResult<Vec<u32>>>()?;
+    Ok(metrics::auc_approx(&errors, &thresholds))
 }
 
 /// Mean distance of the image corners under the estimated and the true homography.
@@ -520,6 +541,11 @@ fn pose_auc_approx(errors: Vec<f64>, thresholds: Vec<u32>) -> Vec<f64> {
 #[pyfunction]
 #[pyo3(signature = (h_est, h_gt, width, height))]
 fn homography_corner_error(h_est: Vec<f64>, h_gt: Vec<f64>, width: f64, height: f64) -> PyResult<f64> {
+    for (name, v) in [("width", width), ("height", height)] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(PyValueError::new_err(format!("{name}: {v}: expected a positive image size in pixels")));
+        }
+    }
     Ok(metrics::homography_corner_error(&mat3(&h_est)?, &mat3(&h_gt)?, width, height))
 }
 

@@ -115,6 +115,31 @@ mod tests {
         }
     }
 
+    /// Parameters under which no model is meaningful are named, not reported as a failed
+    /// search (a threshold of 0 used to read as "no hypothesis reached 4 inliers").
+    #[test]
+    fn invalid_ransac_parameters_are_named() {
+        let (x0, x1) = scene(30, 0, 0.5, 3);
+        let ok = RansacConfig::default();
+        assert!(ok.validate().is_ok() && find_homography(&x0, &x1, &ok).is_ok());
+        let bad = [
+            (RansacConfig { threshold: 0.0, ..ok.clone() }, "threshold"),
+            (RansacConfig { threshold: -1.0, ..ok.clone() }, "threshold"),
+            (RansacConfig { threshold: f64::NAN, ..ok.clone() }, "threshold"),
+            (RansacConfig { confidence: 0.0, ..ok.clone() }, "confidence"),
+            (RansacConfig { confidence: 1.5, ..ok.clone() }, "confidence"),
+            (RansacConfig { confidence: f64::NAN, ..ok.clone() }, "confidence"),
+            (RansacConfig { max_iterations: 0, ..ok.clone() }, "max_iterations"),
+        ];
+        for (cfg, field) in bad {
+            assert!(cfg.validate().expect_err(field).to_string().contains(field), "{cfg:?}");
+            match find_homography(&x0, &x1, &cfg) {
+                Err(NoModel::InvalidConfig(m)) => assert!(m.contains(field), "{m}"),
+                other => panic!("{cfg:?}: {other:?}"),
+            }
+        }
+    }
+
     #[test]
     fn degenerate_input_gives_no_model() {
         let x: Vec<Point> = (0..3).map(|i| [i as f64, 0.0]).collect();

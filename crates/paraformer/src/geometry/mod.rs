@@ -29,6 +29,9 @@ pub enum NoModel {
     /// No hypothesis had the minimum number of inliers (given here).
     #[error("no hypothesis reached the minimum of {0} inliers")]
     NoConsensus(usize),
+    /// The [`RansacConfig`] cannot find a model (see [`RansacConfig::validate`]).
+    #[error("invalid RANSAC parameters: {0}")]
+    InvalidConfig(String),
 }
 
 /// RANSAC parameters.
@@ -49,6 +52,24 @@ pub struct RansacConfig {
 impl Default for RansacConfig {
     fn default() -> Self {
         Self { threshold: 3.0, confidence: 0.999, max_iterations: 10_000, local_optimization: true, seed: 0 }
+    }
+}
+
+impl RansacConfig {
+    /// An error naming the field unless the threshold is finite and positive, the confidence
+    /// in (0, 1) and at least one hypothesis is allowed: otherwise no point could be an inlier
+    /// (or every one), and the adaptive count would be meaningless.
+    pub fn validate(&self) -> crate::Result<()> {
+        if !(self.threshold.is_finite() && self.threshold > 0.0) {
+            return Err(crate::Error::input("threshold", format!("{}: expected a positive number of pixels", self.threshold)));
+        }
+        if !(self.confidence > 0.0 && self.confidence < 1.0) {
+            return Err(crate::Error::input("confidence", format!("{}: expected a probability in (0, 1), e.g. 0.999", self.confidence)));
+        }
+        if self.max_iterations == 0 {
+            return Err(crate::Error::input("max_iterations", "0: expected at least 1"));
+        }
+        Ok(())
     }
 }
 
@@ -79,6 +100,9 @@ pub trait Estimator {
 
 /// RANSAC over `x0[i] ↔ x1[i]`.
 pub fn ransac<E: Estimator>(est: &E, x0: &[Point], x1: &[Point], cfg: &RansacConfig) -> Result<RansacResult<E::Model>, NoModel> {
+    if let Err(e) = cfg.validate() {
+        return Err(NoModel::InvalidConfig(e.to_string()));
+    }
     let n = x0.len().min(x1.len());
     let s = E::SAMPLE_SIZE;
     if n < s {
