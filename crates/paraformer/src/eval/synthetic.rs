@@ -82,9 +82,17 @@ pub fn warp(img: &RgbImage, h: &Matrix3<f64>) -> Option<RgbImage> {
 
 /// Writes `cfg.count` pairs from the photos in `photos` to `out` and returns them.
 pub fn generate(photos: &Path, out: &Path, cfg: &SyntheticConfig) -> Result<Vec<HomographyPair>> {
+    if !(0.0..=1.0).contains(&cfg.difficulty) {
+        return Err(Error::input("difficulty", format!("{}: expected a number from 0 (identity) to 1 (strong)", cfg.difficulty)));
+    }
     let io = |p: &Path| {
         let p = p.to_path_buf();
         move |source| Error::Io { path: p, source }
+    };
+    // Failures to create or write the output are write errors, not read errors.
+    let write = |p: &Path| {
+        let p = p.to_path_buf();
+        move |source| Error::Write { path: p, source }
     };
     let mut files: Vec<PathBuf> = std::fs::read_dir(photos)
         .map_err(io(photos))?
@@ -95,11 +103,11 @@ pub fn generate(photos: &Path, out: &Path, cfg: &SyntheticConfig) -> Result<Vec<
     if files.is_empty() {
         return Err(Error::input(photos.display().to_string(), "no images (jpg, png, pgm, ppm) in the folder"));
     }
-    std::fs::create_dir_all(out).map_err(io(out))?;
+    std::fs::create_dir_all(out).map_err(write(out))?;
     let mut rng = SplitMix64::new(cfg.seed);
     let mut pairs = Vec::with_capacity(cfg.count);
     let list_path = out.join("homographies.txt");
-    let mut list = std::fs::File::create(&list_path).map_err(io(&list_path))?;
+    let mut list = std::fs::File::create(&list_path).map_err(write(&list_path))?;
     for i in 0..cfg.count {
         let src = &files[(rng.next_u64() % files.len() as u64) as usize];
         let img = image::open(src).map_err(|e| Error::input(src.display().to_string(), e.to_string()))?.to_rgb8();
@@ -114,7 +122,7 @@ pub fn generate(photos: &Path, out: &Path, cfg: &SyntheticConfig) -> Result<Vec<
             im.save(&p).map_err(|e| Error::input(p.display().to_string(), e.to_string()))?;
         }
         let hs: Vec<String> = hmat.transpose().as_slice().iter().map(|v| format!("{v:.12e}")).collect();
-        writeln!(list, "{n0} {n1} {}", hs.join(" ")).map_err(io(&list_path))?;
+        writeln!(list, "{n0} {n1} {}", hs.join(" ")).map_err(write(&list_path))?;
         pairs.push(HomographyPair { name0: n0.clone(), name1: n1.clone(), image0: out.join(&n0), image1: out.join(&n1), h: hmat });
     }
     Ok(pairs)
@@ -147,6 +155,14 @@ mod tests {
                 assert!((c[0] as i32 - 120).abs() <= 6 && (c[1] as i32 - 90).abs() <= 6, "{c:?} at {x},{y}");
             }
         }
+        // Outside 0..=1 the warps leave the documented range (5 gave extreme warps, NaN a
+        // misleading "no invertible homography"); an output that cannot be created is a write error.
+        for bad in [5.0, -0.1, f64::NAN] {
+            let e = generate(&photos, &dir.join("bad"), &SyntheticConfig { count: 1, seed: 0, difficulty: bad }).expect_err("refused").to_string();
+            assert!(e.contains("difficulty") && e.contains("0 (identity) to 1"), "{bad}: {e}");
+        }
+        let e = generate(&photos, &photos.join("a.png").join("out"), &SyntheticConfig { count: 1, ..Default::default() }).expect_err("a file as folder");
+        assert!(e.to_string().starts_with("cannot write"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
