@@ -82,6 +82,10 @@ def test_limit_is_settable_and_applies_to_match_many_and_extract(limit_restored)
     assert paraformer.memory_limit() > 1_000_000
     # a limit that fits one pair at a time: match_many still finishes, pairs run one by one
     need_one = m.memory_needed(512, 512)
+    # Counts too large to hold: named, and the estimate saturates rather than wraps.
+    with pytest.raises(ValueError, match=r"^m: "):
+        m.memory_needed(10**30, 5)
+    assert m.memory_needed(2**63, 2**63) == 2**64 - 1
     assert 2 * 513 * 513 * 4 < need_one < 40 * 10**6
     paraformer.set_memory_limit(int(need_one * 1.5))
     outs = m.match_many([(f0, f1)] * 3, num_threads=2)

@@ -263,6 +263,8 @@ class Matcher:
         for name, v in (("m", m), ("n", n)):
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0:
                 raise ValueError(f"{name}: expected a non-negative int, got {v!r}")
+            if v >= 2**64:  # beyond what the native count holds (the estimate saturates below it)
+                raise ValueError(f"{name}: {v} keypoints is beyond any memory")
         return int(self._inner.memory_needed(int(m), int(n)))
 
     def match_many(self, pairs: Sequence[tuple[Mapping[str, Any], Mapping[str, Any]]], *,
