@@ -196,6 +196,15 @@ def test_match_pairs_resumes_and_checks(features, tmp_path, monkeypatch):
         sfm.match_pairs(features, [("a.jpg", "a.jpg")], tmp_path / "z.h5", progress=False)
     with pytest.raises(FileNotFoundError, match="features_path"):
         sfm.match_pairs(tmp_path / "none.h5", [("a.jpg", "b.jpg")], tmp_path / "z.h5", progress=False)
+    # No pairs would write no file, which the next step fails to open: named instead. A bad
+    # backend is named even when every pair is already done.
+    (tmp_path / "empty.txt").write_text("")
+    with pytest.raises(ValueError, match=r"^pairs: no pairs in .*empty.txt"):
+        sfm.match_pairs(features, tmp_path / "empty.txt", tmp_path / "e.h5", progress=False)
+    with pytest.raises(ValueError, match=r"^pairs: no pairs in the list"):
+        sfm.match_pairs(features, [], tmp_path / "e.h5", progress=False)
+    with pytest.raises(ValueError, match=r"^backend: "):
+        sfm.match_pairs(features, pairs_file, path, progress=False, backend="spark")
 
 
 def test_reconstruct_bad_input(images, tmp_path):

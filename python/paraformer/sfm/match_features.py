@@ -117,9 +117,16 @@ def match_pairs(features_path: PathLike, pairs: Pairs, matches_path: PathLike, *
         raise FileNotFoundError(f"features_path: no features file {features_path}")
     if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
         raise ValueError(f"batch: expected a positive int, got {batch!r}")
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend: expected 'local' or 'ray', got {backend!r}")
     model = load_matcher(matcher)
     tag = matcher_tag(matcher if isinstance(matcher, (str, os.PathLike)) else model)
-    todo = pending_pairs(resolve_pairs(pairs), matches_path, overwrite, tag)
+    wanted = resolve_pairs(pairs)
+    if not wanted:
+        # Nothing would be written: the matches file a later step opens would not exist.
+        where = os.fspath(pairs) if isinstance(pairs, (str, os.PathLike)) else "the list"
+        raise ValueError(f"pairs: no pairs in {where}")
+    todo = pending_pairs(wanted, matches_path, overwrite, tag)
     matches_path.parent.mkdir(parents=True, exist_ok=True)
     with open_h5(features_path, "r") as ffd:
         check_features(ffd, todo, features_path)
@@ -130,8 +137,6 @@ def match_pairs(features_path: PathLike, pairs: Pairs, matches_path: PathLike, *
 
         return match_pairs_ray(features_path, todo, matches_path, matcher=matcher, tag=tag, batch=batch,
                                progress=progress, **ray_options)
-    if backend != "local":
-        raise ValueError(f"backend: expected 'local' or 'ray', got {backend!r}")
     if ray_options:
         raise TypeError(f"match_pairs: options {sorted(ray_options)} are for backend='ray'")
     with open_h5(features_path, "r") as ffd, \
