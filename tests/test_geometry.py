@@ -186,6 +186,19 @@ def test_features_file_round_trip(tmp_path):
     with pytest.raises(ValueError, match="descriptors"):
         paraformer.features.write(str(p), {"x": {"keypoints": np.zeros((3, 2)), "descriptors": np.zeros((2, 4)),
                                                 "image_size": (1, 1)}})
+    # A [K, 3] array was reshaped into 3K/2 points, a missing field was a bare KeyError, NaN was
+    # written, and a file of another format failed with a struct error: each is named now.
+    good = {"keypoints": np.zeros((4, 2)), "descriptors": np.zeros((4, 4)), "image_size": (1, 1)}
+    for bad, pattern in (({**good, "keypoints": np.zeros((4, 3))}, r"^x: keypoints must be \[K, 2\], got \[4, 3\]"),
+                         ({k: v for k, v in good.items() if k != "image_size"}, r"^x: missing image_size"),
+                         ({**good, "descriptors": np.full((4, 4), np.nan)}, r"^x: descriptors contains NaN")):
+        with pytest.raises(ValueError, match=pattern):
+            paraformer.features.write(str(tmp_path / "bad.safetensors"), {"x": bad})
+    (tmp_path / "junk.safetensors").write_bytes(b"junk")
+    (tmp_path / "short.safetensors").write_bytes(p.read_bytes()[:-10])
+    for junk in ("junk.safetensors", "short.safetensors"):
+        with pytest.raises(ValueError, match=rf"{junk}: not a features file"):
+            paraformer.features.read(str(tmp_path / junk))
     h5py = pytest.importorskip("h5py", reason="h5py not installed: hloc .h5 round trip skipped")
     paraformer.features.write_h5(str(tmp_path / "f.h5"), feats)
     h5 = paraformer.features.read_h5(str(tmp_path / "f.h5"))

@@ -20,7 +20,15 @@ _FIELDS = ("keypoints", "scores", "descriptors", "image_size")
 
 
 def _arrays(name: str, f: Mapping[str, Any]) -> dict[str, np.ndarray]:
-    k = np.asarray(f["keypoints"], dtype="<f4").reshape(-1, 2)
+    missing = [key for key in ("keypoints", "descriptors", "image_size") if key not in f]
+    if missing:
+        raise ValueError(f"{name}: missing {', '.join(missing)}")
+    k = np.asarray(f["keypoints"], dtype="<f4")
+    if k.size == 0:
+        k = k.reshape(0, 2)
+    # Not reshaped: a [K, 3] array would silently become [3K/2, 2] points.
+    if k.ndim != 2 or k.shape[1] != 2:
+        raise ValueError(f"{name}: keypoints must be [K, 2], got {list(k.shape)}")
     d = np.asarray(f["descriptors"], dtype="<f4")
     if d.ndim != 2 or d.shape[0] != len(k):
         raise ValueError(f"{name}: descriptors must be [K, D] with K = {len(k)}, got {list(d.shape)}")
@@ -28,6 +36,9 @@ def _arrays(name: str, f: Mapping[str, Any]) -> dict[str, np.ndarray]:
     size = np.asarray(f["image_size"], dtype="<f4").reshape(-1)
     if len(s) != len(k) or size.shape != (2,):
         raise ValueError(f"{name}: scores must be [{len(k)}] and image_size (width, height)")
+    for field, arr in (("keypoints", k), ("scores", s), ("descriptors", d), ("image_size", size)):
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name}: {field} contains NaN or Inf")
     return {"keypoints": k, "scores": s, "descriptors": d, "image_size": size}
 
 
@@ -54,15 +65,21 @@ def read(path: str) -> dict[str, dict[str, np.ndarray]]:
     """Reads a features file into ``{image name: {keypoints, scores, descriptors, image_size}}``."""
     with open(path, "rb") as fh:
         raw = fh.read()
-    (n,) = struct.unpack("<Q", raw[:8])
-    header = json.loads(raw[8:8 + n])
-    out: dict[str, dict[str, np.ndarray]] = {}
-    for key, info in header.items():
-        if key == "__metadata__":
-            continue
-        name, field = key.rsplit("::", 1)
-        a, b = info["data_offsets"]
-        out.setdefault(name, {})[field] = np.frombuffer(raw[8 + n + a:8 + n + b], dtype="<f4").reshape(info["shape"]).copy()
+    try:
+        (n,) = struct.unpack("<Q", raw[:8])
+        header = json.loads(raw[8:8 + n])
+        out: dict[str, dict[str, np.ndarray]] = {}
+        for key, info in header.items():
+            if key == "__metadata__":
+                continue
+            name, field = key.rsplit("::", 1)
+            a, b = info["data_offsets"]
+            if info["dtype"] != "F32" or not 0 <= a <= b <= len(raw) - 8 - n:
+                raise ValueError(f"{key}: dtype {info['dtype']} or offsets {a}..{b} out of range")
+            out.setdefault(name, {})[field] = np.frombuffer(raw[8 + n + a:8 + n + b], dtype="<f4").reshape(info["shape"]).copy()
+    except (struct.error, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as e:
+        # json.JSONDecodeError is a ValueError; a header of the wrong shape raises the others.
+        raise ValueError(f"{path}: not a features file ({type(e).__name__}: {e})") from None
     return out
 
 
