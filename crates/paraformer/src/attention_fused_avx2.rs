@@ -22,9 +22,10 @@ use crate::attention_fused::x86::{merge_columns, pack, ColumnState, CrossTasks, 
 use crate::error::Result;
 use crate::kernels::{internal, sum_in_order, Matrix, SharedMut, View};
 
-/// Whether these kernels run here and serve head width `d`.
+/// Whether these kernels run here and serve head width `d`: the fused kernels' own
+/// condition, which the AVX-512 ones share.
 fn runs(d: usize) -> bool {
-    matches!(d, 16 | 32 | 64 | 96) && crate::kernels::simd_level() >= 3
+    crate::attention_fused::x86::available(d)
 }
 
 /// Values of every head contiguous, `[H][n][d]`: the value product streams one head's
