@@ -258,12 +258,13 @@ pub(crate) fn lane_mask(n: usize, j0: usize) -> __mmask16 {
 // ---- micro-kernels ------------------------------------------------------------------
 
 /// Scores of a strip: `s[r][j] = Σ_t q[r][t]·kᵀ[t][j]` for 16 rows and all `np` columns
-/// (columns ≥ `n` set to −∞). fp32 operands.
+/// (columns ≥ `n` set to −∞). fp32 operands. Both 8-row tiles take a pair of key panels
+/// in turn, so the second reads it from L1.
 #[inline(always)]
 unsafe fn scores_f32<const D: usize>(q: *const f32, kp: *const f32, n: usize, np: usize, s: *mut f32, ld: usize) {
     let neg = _mm512_set1_ps(f32::NEG_INFINITY);
-    for rt in (0..STRIP).step_by(8) {
-        for p in (0..np / 16).step_by(2) {
+    for p in (0..np / 16).step_by(2) {
+        for rt in (0..STRIP).step_by(8) {
             let mut acc = [[_mm512_setzero_ps(); 2]; 8];
             let (b0p, b1p) = (kp.add(p * D * 16), kp.add((p + 1) * D * 16));
             for t in 0..D {
@@ -337,35 +338,61 @@ unsafe fn exp_row(s: *mut f32, np: usize, p16: Option<*mut u16>) -> f32 {
     _mm512_reduce_add_ps(sum)
 }
 
+/// Accumulator registers of the fp32 value products' tiles (of 32; the rest hold values).
+const TILE_ACC: usize = 24;
+
+/// Rows (or columns) per register tile of the fp32 value products at `dv = D/16`: 16 accumulators
+/// for D ≤ 64, and 4 × 6 = 24 at D = 96, where 2 × 6 = 12 read every value row twice as often
+/// and left the products bound by L2 bandwidth. Each output still sums over keys in order.
+const fn value_tile(dv: usize) -> usize {
+    if dv == 6 {
+        4
+    } else {
+        16 / dv
+    }
+}
+
 /// `out[r][..D] = inv[r] · Σ_j p[r][j]·v[j][..D]` for 16 rows (fp32; `v` strided).
 #[inline(always)]
 unsafe fn values_f32<const D: usize>(p: *const f32, ld: usize, n: usize, v: *const f32, v_stride: usize, out: &mut StripOut) {
     const { assert!(D.is_multiple_of(16) && D <= MAX_D) };
     let dv = D / 16;
-    // Tiles of R rows × D columns with R·dv = 16 accumulators.
-    let rows = 16 / dv;
-    for r0 in (0..STRIP).step_by(rows) {
-        let mut acc = [_mm512_setzero_ps(); 16];
-        for j in 0..n {
-            let vp = v.add(j * v_stride);
-            let mut vr = [_mm512_setzero_ps(); MAX_D / 16];
-            for (c, x) in vr.iter_mut().enumerate().take(dv) {
-                *x = _mm512_loadu_ps(vp.add(c * 16));
-            }
+    // Tiles of R rows × D columns with R·dv accumulators (see `value_tile`).
+    let rows = value_tile(dv);
+    // Blocks of keys whose values stay in L1 while every row tile reads them; a tile's
+    // sums continue from `out` (zero on entry), so each output sums over keys in order.
+    for j0 in (0..n).step_by(VALUE_KEYS) {
+        for r0 in (0..STRIP).step_by(rows) {
+            let mut acc = [_mm512_setzero_ps(); TILE_ACC];
             for r in 0..rows {
-                let a = _mm512_set1_ps(*p.add((r0 + r) * ld + j));
                 for c in 0..dv {
-                    acc[r * dv + c] = _mm512_fmadd_ps(a, vr[c], acc[r * dv + c]);
+                    acc[r * dv + c] = _mm512_loadu_ps(out[r0 + r].as_ptr().add(c * 16));
                 }
             }
-        }
-        for r in 0..rows {
-            for c in 0..dv {
-                _mm512_storeu_ps(out[r0 + r].as_mut_ptr().add(c * 16), acc[r * dv + c]);
+            for j in j0..(j0 + VALUE_KEYS).min(n) {
+                let vp = v.add(j * v_stride);
+                let mut vr = [_mm512_setzero_ps(); MAX_D / 16];
+                for (c, x) in vr.iter_mut().enumerate().take(dv) {
+                    *x = _mm512_loadu_ps(vp.add(c * 16));
+                }
+                for r in 0..rows {
+                    let a = _mm512_set1_ps(*p.add((r0 + r) * ld + j));
+                    for c in 0..dv {
+                        acc[r * dv + c] = _mm512_fmadd_ps(a, vr[c], acc[r * dv + c]);
+                    }
+                }
+            }
+            for r in 0..rows {
+                for c in 0..dv {
+                    _mm512_storeu_ps(out[r0 + r].as_mut_ptr().add(c * 16), acc[r * dv + c]);
+                }
             }
         }
     }
 }
+
+/// Keys per block of [`values_f32`]: at head width 96, 24 KB of values (L1 holds 32–48 KB).
+const VALUE_KEYS: usize = 64;
 
 /// The same from bf16 probabilities `p16` (`[16][np]`) and values packed by
 /// [`pack_values_bf16`] (pairs of rows; `n` rounded up to even, padding is zero).
@@ -668,20 +695,23 @@ unsafe fn cross_chunk<const D: usize, const BF: bool>(job: &CrossJob) -> ColumnS
     for r0 in (first..last).step_by(STRIP) {
         let rows = STRIP.min(last - r0);
         strip_scores::<D, BF>(pk, h, r0, &mut s);
-        // Columns: new running maxima over the valid rows; rescale what grew.
+        // Columns: new running maxima over the valid rows; rescale what grew. The factor is
+        // exactly 1 where the maximum stayed (`exp2v(0)` is 1 + 1.2e-7, which made every
+        // column's sums look grown and rescaled them all on every strip).
         let sp = s.as_ptr();
         let mut grew = false;
         for j in (0..np).step_by(16) {
-            let mut bm = _mm512_loadu_ps(st.max.as_ptr().add(j));
-            let old = bm;
+            let old = _mm512_loadu_ps(st.max.as_ptr().add(j));
+            let mut bm = old;
             for r in 0..rows {
                 bm = _mm512_max_ps(bm, _mm512_loadu_ps(sp.add(r * ld + j)));
             }
-            let f = exp2v(_mm512_sub_ps(old, bm));
+            let up = _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(bm, old);
+            let f = _mm512_mask_blend_ps(up, _mm512_set1_ps(1.0), exp2v(_mm512_sub_ps(old, bm)));
             _mm512_storeu_ps(st.max.as_mut_ptr().add(j), bm);
             _mm512_storeu_ps(factor.as_mut_ptr().add(j), f);
             _mm512_storeu_ps(st.sum.as_mut_ptr().add(j), _mm512_mul_ps(f, _mm512_loadu_ps(st.sum.as_ptr().add(j))));
-            grew |= _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(f, _mm512_set1_ps(1.0)) != 0;
+            grew |= up != 0;
         }
         if grew && r0 > first {
             for (j, &f) in factor.iter().enumerate() {
@@ -762,7 +792,7 @@ unsafe fn column_values_bf16<const D: usize>(s: *const f32, np: usize, ld: usize
 #[inline(always)]
 unsafe fn column_values<const D: usize>(s: *const f32, np: usize, ld: usize, rows: usize, st: &mut ColumnState, vx: *const f32, vx_stride: usize) {
     let dv = D / 16;
-    let cols = 16 / dv; // columns per register tile: cols·dv = 16 accumulators
+    let cols = value_tile(dv); // columns per register tile: cols·dv accumulators
     let mut e = [[0.0f32; 16]; STRIP];
     for j0 in (0..np).step_by(16) {
         let mx = _mm512_loadu_ps(st.max.as_ptr().add(j0));
@@ -774,7 +804,7 @@ unsafe fn column_values<const D: usize>(s: *const f32, np: usize, ld: usize, row
         }
         _mm512_storeu_ps(st.sum.as_mut_ptr().add(j0), sum);
         for jt in (0..16).step_by(cols) {
-            let mut acc = [_mm512_setzero_ps(); 16];
+            let mut acc = [_mm512_setzero_ps(); TILE_ACC];
             for (r, er) in e.iter().enumerate().take(rows) {
                 let vp = vx.add(r * vx_stride);
                 let mut vr = [_mm512_setzero_ps(); MAX_D / 16];
