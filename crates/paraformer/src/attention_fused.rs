@@ -67,6 +67,8 @@ use crate::kernels::{internal, sum_in_order, to_bf16, Matrix, SharedMut, View};
 
 /// Query rows per strip: the unit of the score buffer (`STRIP × N` floats).
 pub(crate) const STRIP: usize = 16;
+/// Strips per column pass of the fp32 shared cross attention (see `cross_chunk`).
+pub(crate) const CROSS_STRIPS: usize = 4;
 /// Query rows per task of the shared cross attention (fixed, for reproducible sums).
 pub(crate) const CROSS_ROWS: usize = 256;
 /// At most this many cross-attention tasks per head: each holds an `N × d` column state
@@ -689,12 +691,17 @@ unsafe fn cross_chunk<const D: usize, const BF: bool>(job: &CrossJob) -> ColumnS
     let CrossJob { pk, vx, vy, vx16, vy16, h, rows: (first, last), dx } = *job;
     let (np, ld) = (pk.np, pk.ld);
     let mut st = ColumnState { max: vec![NEG; np], sum: vec![0.0; np], acc: vec![0.0; np * D] };
-    let mut s = vec![0.0f32; STRIP * ld];
+    // fp32 takes the column direction over CROSS_STRIPS strips at once: the column sums
+    // `acc` (N × D, in L2) are read and written once per group rather than per strip.
+    let group = if BF { 1 } else { CROSS_STRIPS };
+    let mut s = vec![0.0f32; group * STRIP * ld];
     let mut p16 = vec![0u16; if BF { STRIP * ld } else { 0 }];
     let mut factor = vec![0.0f32; np];
-    for r0 in (first..last).step_by(STRIP) {
-        let rows = STRIP.min(last - r0);
-        strip_scores::<D, BF>(pk, h, r0, &mut s);
+    for r0 in (first..last).step_by(group * STRIP) {
+        let rows = (group * STRIP).min(last - r0);
+        for g in 0..rows.div_ceil(STRIP) {
+            strip_scores::<D, BF>(pk, h, r0 + g * STRIP, &mut s[g * STRIP * ld..]);
+        }
         // Columns: new running maxima over the valid rows; rescale what grew. The factor is
         // exactly 1 where the maximum stayed (`exp2v(0)` is 1 + 1.2e-7, which made every
         // column's sums look grown and rescaled them all on every strip).
@@ -728,8 +735,11 @@ unsafe fn cross_chunk<const D: usize, const BF: bool>(job: &CrossJob) -> ColumnS
         } else {
             column_values::<D>(sp, np, ld, rows, &mut st, vx.data.as_ptr().add(r0 * vx.stride + h * D), vx.stride);
         }
-        // Rows: softmax over the keys, values of image 1.
-        strip_rows::<D, BF>(pk, h, r0, rows, &mut s, &mut p16, vy, vy16, dx);
+        // Rows: softmax over the keys, values of image 1, a strip at a time.
+        for g in 0..rows.div_ceil(STRIP) {
+            let sg = &mut s[g * STRIP * ld..];
+            strip_rows::<D, BF>(pk, h, r0 + g * STRIP, STRIP.min(rows - g * STRIP), sg, &mut p16, vy, vy16, dx);
+        }
     }
     let n = pk.n;
     st.max.truncate(n);
@@ -787,13 +797,13 @@ unsafe fn column_values_bf16<const D: usize>(s: *const f32, np: usize, ld: usize
     }
 }
 
-/// Column direction of one strip: `e_rj = 2^(s_rj − max_j)`, `sum_j += Σ_r e_rj` and
+/// Column direction of up to [`CROSS_STRIPS`] strips: `e_rj = 2^(s_rj − max_j)`, `sum_j += Σ_r e_rj` and
 /// `acc_j += Σ_r e_rj·vx_r` (fp32: these sums are few per column and stay exact enough).
 #[inline(always)]
 unsafe fn column_values<const D: usize>(s: *const f32, np: usize, ld: usize, rows: usize, st: &mut ColumnState, vx: *const f32, vx_stride: usize) {
     let dv = D / 16;
     let cols = value_tile(dv); // columns per register tile: cols·dv accumulators
-    let mut e = [[0.0f32; 16]; STRIP];
+    let mut e = [[0.0f32; 16]; CROSS_STRIPS * STRIP];
     for j0 in (0..np).step_by(16) {
         let mx = _mm512_loadu_ps(st.max.as_ptr().add(j0));
         let mut sum = _mm512_loadu_ps(st.sum.as_ptr().add(j0));
