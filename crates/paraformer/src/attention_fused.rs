@@ -642,26 +642,26 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
 /// Merges the column states of each head's chunks (`states[chunk · heads + h]`) in order,
 /// each rescaled to the overall column maximum, into `out_y` `[N, H·d]`.
 pub(crate) fn merge_columns(states: &[ColumnState], heads: usize, chunks: usize, d: usize, out_y: &mut Matrix) {
-    let (n, c) = (out_y.rows, out_y.cols);
-    for h in 0..heads {
-        let parts: Vec<&ColumnState> = (0..chunks).map(|ch| &states[ch * heads + h]).collect();
-        for j in 0..n {
-            let mx = parts.iter().fold(NEG, |a, s| a.max(s.max[j]));
+    let c = out_y.cols;
+    // Rows of image 1 in parallel (each row's sums in the same order as before).
+    out_y.data.par_chunks_mut(c).enumerate().for_each(|(j, row)| {
+        for h in 0..heads {
+            let parts = || (0..chunks).map(|ch| &states[ch * heads + h]);
+            let mx = parts().fold(NEG, |a, s| a.max(s.max[j]));
             let mut sum = 0.0f32;
             let mut acc = [0.0f32; MAX_D];
-            for s in &parts {
+            for s in parts() {
                 let f = (std::f32::consts::LN_2 * (s.max[j] - mx)).exp();
                 sum += s.sum[j] * f;
                 for (a, x) in acc[..d].iter_mut().zip(&s.acc[j * d..(j + 1) * d]) {
                     *a += x * f;
                 }
             }
-            let row = &mut out_y.data[j * c + h * d..j * c + (h + 1) * d];
-            for (o, a) in row.iter_mut().zip(&acc[..d]) {
+            for (o, a) in row[h * d..(h + 1) * d].iter_mut().zip(&acc[..d]) {
                 *o = a / sum;
             }
         }
-    }
+    });
 }
 
 /// One task of the shared cross attention: rows `rows.0..rows.1` of head `h`.
