@@ -1,4 +1,4 @@
-//! Fused attention for narrow heads (head width 16, 32 or 64) on AVX-512 CPUs (and, in
+//! Fused attention for narrow heads (head width 16, 32, 64 or 96) on AVX-512 CPUs (and, in
 //! fp32, on AVX2 CPUs through [`crate::attention_fused_avx2`]'s 8-lane kernels): the same
 //! results as [`crate::attention`] (SPEC §4–§5, softmax over keys; the shared cross
 //! attention's transposed softmax), computed in one pass per strip of 16 query rows.
