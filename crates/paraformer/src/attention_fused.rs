@@ -344,8 +344,8 @@ unsafe fn exp_row(s: *mut f32, np: usize, p16: Option<*mut u16>) -> f32 {
 const TILE_ACC: usize = 24;
 
 /// Rows (or columns) per register tile of the fp32 value products at `dv = D/16`: 16 accumulators
-/// for D ≤ 64, and 4 × 6 = 24 at D = 96, where 2 × 6 = 12 read every value row twice as often
-/// and left the products bound by L2 bandwidth. Each output still sums over keys in order.
+/// for D ≤ 64, and 4 × 6 = 24 at D = 96, where 2 × 6 = 12 made every strip read each value
+/// row eight times (0.91× the layers' time with 4 × 6). Each output still sums over keys in order.
 const fn value_tile(dv: usize) -> usize {
     if dv == 6 {
         4
