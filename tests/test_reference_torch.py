@@ -79,6 +79,28 @@ def test_self_rotary_leaves_the_spec_model_and_has_no_weights_file(tmp_path):
         Matcher(cfg, (5.0, 1.0))
 
 
+def test_validate_snapshots_rebuilds_rotary_checkpoints(tmp_path):
+    """``validate_snapshots.py`` builds each snapshot's model with its run's ``--self-rotary``
+    (it built every checkpoint without, so a rotary one failed to load)."""
+    import validate_snapshots
+    from paraformer_train.model import Matcher
+
+    args = {"preset": "paraformer", "dim": 48, "heads": 3, "depth": 2, "sinkhorn": 5, "seed": 0,
+            "self_rotary": [1.0, 100.0]}
+    model = Matcher(validate_snapshots.model_config(args), tuple(args["self_rotary"]))
+    path = tmp_path / "last.pt"
+    torch.save({"ema": model.state_dict(), "pairs": 1234, "steps": 7, "args": args}, path)
+    ((pairs, rebuilt, state, extra),) = validate_snapshots.snapshots(str(path))
+    assert (pairs, extra) == (1234, {"steps": 7})
+    rebuilt.load_state_dict(state)  # strict: every rotary weight has its place
+    assert any(k.startswith("self_rotary.") for k in rebuilt.state_dict())
+    # A snapshots file (train_gpu.py's) without the field builds the SPEC model.
+    torch.save({500: {"config": model.config, "ema": Matcher(model.config).state_dict()}}, tmp_path / "snap.pt")
+    ((pairs, plain, state, _),) = validate_snapshots.snapshots(str(tmp_path / "snap.pt"))
+    plain.load_state_dict(state)
+    assert pairs == 500 and not any(k.startswith("self_rotary.") for k in plain.state_dict())
+
+
 def test_self_rotary_with_a_gain_starts_as_the_identity():
     """``--self-rotary LO HI GAIN`` fine-tunes a trained model: at the start it computes what
     the model without the encoding does."""

@@ -23,13 +23,14 @@ from paraformer_train.model import Matcher  # noqa: E402
 from train import ensure_holdout, model_config, validate  # noqa: E402
 
 
-def snapshots(path: str) -> list[tuple[int, dict, dict, dict]]:
-    """(pairs, config, EMA state, extra fields) of every snapshot in a file."""
+def snapshots(path: str) -> list[tuple[int, Matcher, dict, dict]]:
+    """(pairs, an untrained model of the snapshot's kind, EMA state, extra fields) of every
+    snapshot in a file. A checkpoint's model carries its run's ``--self-rotary``."""
     blob = torch.load(path, map_location="cpu", weights_only=False)
     if "ema" in blob and "pairs" in blob:  # a checkpoint: its EMA weights
         m = Matcher_from_args(blob["args"])
-        return [(blob["pairs"], m.config, blob["ema"], {"steps": blob.get("steps")})]
-    return [(p, s["config"], s["ema"], {"steps": s.get("steps"), "train_s": s.get("train_s")})
+        return [(blob["pairs"], m, blob["ema"], {"steps": blob.get("steps")})]
+    return [(p, Matcher(s["config"], s.get("self_rotary")), s["ema"], {"steps": s.get("steps"), "train_s": s.get("train_s")})
             for p, s in sorted(blob.items())]
 
 
@@ -50,8 +51,7 @@ def main() -> None:
     holdout = ensure_holdout(256)
     os.makedirs(os.path.dirname(os.path.abspath(args.log)), exist_ok=True)
     for path in args.files:
-        for pairs, config, state, extra in snapshots(path):
-            model = Matcher(config)
+        for pairs, model, state, extra in snapshots(path):
             model.load_state_dict({k: v.float() for k, v in state.items()})
             model.eval()
             v = validate(model, holdout, 512, args.threshold, auc=False)
