@@ -148,6 +148,20 @@ def test_nan_and_inf(golden_weights, golden_case):
     bad(m, c, ["size0"], size0=(np.nan, 480))
 
 
+def test_keypoints_far_outside_the_image(golden_weights, golden_case):
+    """A swapped (height, width), another image's size or normalised keypoints used to give
+    matches silently: keypoints beyond the margin are named with their row."""
+    m, c = paraformer.Matcher.from_file(golden_weights), golden_case
+    k = np.clip(c["keypoints0"], 0, 470); k[1] = [630.0, 20.0]
+    bad(m, c, ["kpts0", "row 1", "lies outside the", "(width, height)"], kpts0=k, size0=(480, 640))
+    k = c["keypoints1"].copy(); k[0] = [-1e30, 5.0]
+    bad(m, c, ["kpts1", "row 0", "lies outside the"], kpts1=k)
+    f0 = {"keypoints": c["keypoints0"], "descriptors": c["descriptors0"], "image_size": (64, 48)}
+    f1 = {"keypoints": c["keypoints1"], "descriptors": c["descriptors1"], "image_size": c["image_size1"]}
+    with pytest.raises(ValueError, match="kpts0: row .* lies outside the"):
+        m.match_dicts(f0, f1)
+
+
 def test_wrong_dtype_and_non_numeric(golden_weights, golden_case):
     m, c = paraformer.Matcher.from_file(golden_weights), golden_case
     bad(m, c, ["kpts0", "float32 or float64", "int64"], kpts0=c["keypoints0"].astype(np.int64))
@@ -312,7 +326,7 @@ def test_gil_is_released_while_matching(golden_weights):
     # held for the whole computation it could not count at all until the thread ended.
     m = paraformer.Matcher.from_file(golden_weights)
     rng = np.random.default_rng(0)
-    big = {"keypoints": rng.uniform(0, 640, (1500, 2)), "descriptors": rng.standard_normal((1500, 16)),
+    big = {"keypoints": rng.uniform(0, 480, (1500, 2)), "descriptors": rng.standard_normal((1500, 16)),
            "image_size": (640, 480)}
     done = threading.Event()
     worker = threading.Thread(target=lambda: (m.match_many([(big, big)] * 4, num_threads=1), done.set()))

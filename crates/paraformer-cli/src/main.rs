@@ -341,10 +341,11 @@ fn run(cli: Cli) -> paraformer::Result<()> {
             let name = |p: &PathBuf| p.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
             let get = |n: String| feats.get(&n).ok_or_else(|| paraformer::Error::InvalidInput { argument: "features".into(), reason: format!("no features for `{n}`") });
             let (f0, f1) = (get(name(&image0))?, get(name(&image1))?);
+            let cfg = ransac_config(threshold)?;
             let spec = matcher_spec(&matcher)?;
             let m0 = spec.matches(f0, f1)?;
             let (x0, x1) = paraformer::eval::harness::correspondences(f0, f1, &m0);
-            let fit = fit_model(&geometry, &x0, &x1, threshold)?;
+            let fit = fit_model(&geometry, &x0, &x1, &cfg)?;
             draw(&image0, &image1, &x0, &x1, &fit.inliers, &out)?;
             println!("{} × {} keypoints, {} matches ({}), {} inliers ({geometry}); model:{}", f0.len(), f1.len(), x0.len(), spec.name(), fit.count(), fit.text);
             println!("wrote {}", out.display());
@@ -415,20 +416,19 @@ fn ransac_config(threshold: f64) -> paraformer::Result<paraformer::geometry::Ran
     Ok(cfg)
 }
 
-fn fit_model(geometry: &str, x0: &[[f64; 2]], x1: &[[f64; 2]], threshold: f64) -> paraformer::Result<Fit> {
+fn fit_model(geometry: &str, x0: &[[f64; 2]], x1: &[[f64; 2]], cfg: &paraformer::geometry::RansacConfig) -> paraformer::Result<Fit> {
     use paraformer::geometry::{epipolar, homography};
-    let cfg = ransac_config(threshold)?;
     let rows = |m: &paraformer::nalgebra::Matrix3<f64>| (0..3).map(|r| (0..3).map(|c| m[(r, c)]).collect()).collect();
     let text = |m: &Vec<Vec<f64>>, sci: bool| {
         let row = |r: &Vec<f64>| r.iter().map(|v| if sci { format!("{v:.4e}") } else { format!("{v:.4}") }).collect::<Vec<_>>().join(", ");
         format!(" [{}]", m.iter().map(row).collect::<Vec<_>>().join("; "))
     };
     let fit = match geometry {
-        "homography" => homography::find_homography(x0, x1, &cfg).map(|r| {
+        "homography" => homography::find_homography(x0, x1, cfg).map(|r| {
             let m: Vec<Vec<f64>> = rows(&(r.model / r.model[(2, 2)]));
             (r.inliers, text(&m, false), m)
         }),
-        "fundamental" => epipolar::find_fundamental(x0, x1, &cfg).map(|r| {
+        "fundamental" => epipolar::find_fundamental(x0, x1, cfg).map(|r| {
             let m: Vec<Vec<f64>> = rows(&r.model);
             (r.inliers, text(&m, true), m)
         }),
@@ -476,7 +476,7 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
         return Err(input_error("--max-keypoints", "must be at least 1"));
     }
     // Checked before the images are read, not after the matching.
-    ransac_config(a.threshold)?;
+    let ransac = ransac_config(a.threshold)?;
     if a.rotations != 1 && a.rotations != 4 {
         return Err(input_error("--rotations", format!("must be 1 or 4, got {}", a.rotations)));
     }
@@ -512,7 +512,7 @@ fn match_images(a: MatchArgs) -> paraformer::Result<()> {
         let (x0, x1) = paraformer::eval::harness::correspondences(&f0, &f1, &m0);
         let x1 = img1.unrotate_points(&x1, quarters);
         let t = Instant::now();
-        let fit = fit_model(&a.geometry, &x0, &x1, a.threshold)?;
+        let fit = fit_model(&a.geometry, &x0, &x1, &ransac)?;
         t_geometry += ms(t);
         if best.as_ref().is_none_or(|b| fit.count() > b.fit.count()) {
             best = Some(Turn { quarters, f1, m0, x0, x1, fit });

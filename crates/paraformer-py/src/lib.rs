@@ -502,16 +502,7 @@ fn find_relative_pose(
 #[pyfunction]
 #[pyo3(signature = (errors, thresholds))]
 fn pose_auc(errors: Vec<f64>, thresholds: Vec<f64>) -> PyResult<Vec<f64>> {
-    positive_thresholds(thresholds.iter().copied())?;
-    Ok(metrics::auc(&errors, &thresholds))
-}
-
-/// AUC thresholds must be positive and finite: a recall curve up to 0 or below has no area.
-fn positive_thresholds(mut thresholds: impl Iterator<Item = f64>) -> PyResult<()> {
-    match thresholds.find(|t| !(t.is_finite() && *t > 0.0)) {
-        Some(t) => Err(PyValueError::new_err(format!("thresholds: {t}: expected positive finite values"))),
-        None => Ok(()),
-    }
+    metrics::auc(&errors, &thresholds).map_err(to_py_err)
 }
 
 /// Approximate (histogram) AUC: mean accuracy at the integer thresholds 1..=t.
@@ -524,9 +515,11 @@ fn positive_thresholds(mut thresholds: impl Iterator<Item = f64>) -> PyResult<()
 #[pyfunction]
 #[pyo3(signature = (errors, thresholds))]
 fn pose_auc_approx(errors: Vec<f64>, thresholds: Vec<i64>) -> PyResult<Vec<f64>> {
-    positive_thresholds(thresholds.iter().map(|&t| t as f64))?;
-    let thresholds = thresholds.iter().map(|&t| u32::try_from(t).map_err(|_| PyValueError::new_err(format!("thresholds: {t}: too large")))).collect::<PyResult<Vec<u32>>>()?;
-    Ok(metrics::auc_approx(&errors, &thresholds))
+    let thresholds = thresholds
+        .iter()
+        .map(|&t| u32::try_from(t).map_err(|_| PyValueError::new_err(format!("thresholds: {t}: expected positive integers below 2^32"))))
+        .collect::<PyResult<Vec<u32>>>()?;
+    metrics::auc_approx(&errors, &thresholds).map_err(to_py_err)
 }
 
 /// Mean distance of the image corners under the estimated and the true homography.
@@ -541,12 +534,7 @@ fn pose_auc_approx(errors: Vec<f64>, thresholds: Vec<i64>) -> PyResult<Vec<f64>>
 #[pyfunction]
 #[pyo3(signature = (h_est, h_gt, width, height))]
 fn homography_corner_error(h_est: Vec<f64>, h_gt: Vec<f64>, width: f64, height: f64) -> PyResult<f64> {
-    for (name, v) in [("width", width), ("height", height)] {
-        if !(v.is_finite() && v > 0.0) {
-            return Err(PyValueError::new_err(format!("{name}: {v}: expected a positive image size in pixels")));
-        }
-    }
-    Ok(metrics::homography_corner_error(&mat3(&h_est)?, &mat3(&h_gt)?, width, height))
+    metrics::homography_corner_error(&mat3(&h_est)?, &mat3(&h_gt)?, width, height).map_err(to_py_err)
 }
 
 /// Ground-truth matches from a homography (mutual nearest under the symmetric

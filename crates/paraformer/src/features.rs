@@ -7,6 +7,11 @@ use safetensors::{Dtype, SafeTensors};
 
 use crate::error::{Error, Result};
 
+/// How far outside the image a keypoint may lie, as a fraction of the larger side
+/// (plus one pixel): room for border conventions, resized extraction and the SPEC test
+/// vectors (up to 7.3% outside), yet a swapped (height, width) of a 4:3 image is caught.
+pub const KEYPOINT_MARGIN: f32 = 0.1;
+
 /// Keypoints and descriptors of one image.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Features {
@@ -57,7 +62,8 @@ impl Features {
         self.keypoints.is_empty()
     }
 
-    /// Checks shapes against `descriptor_dim` and that every value is finite.
+    /// Checks shapes against `descriptor_dim`, that every value is finite and that the
+    /// keypoints lie within `image_size` (up to a margin of [`KEYPOINT_MARGIN`]).
     /// `image` (0 or 1) is appended to argument names in errors, e.g. `descriptors1`.
     pub fn validate(&self, descriptor_dim: usize, image: usize) -> Result<()> {
         let k = self.len();
@@ -83,6 +89,20 @@ impl Features {
         }
         if let Some(i) = self.keypoints.iter().position(|p| !(p[0].is_finite() && p[1].is_finite())) {
             return Err(Error::input(name("keypoints"), format!("row {i} is not finite (NaN or Inf)")));
+        }
+        // Far outside the image means the size or the coordinates are wrong (a swapped
+        // (height, width), another image's size, normalised keypoints): the positional
+        // encoding would then silently mislead the match. Edge conventions fit the margin.
+        let margin = KEYPOINT_MARGIN * w.max(h) + 1.0;
+        if let Some(i) = self.keypoints.iter().position(|p| p[0] < -margin || p[0] > w + margin || p[1] < -margin || p[1] > h + margin) {
+            let [x, y] = self.keypoints[i];
+            return Err(Error::input(
+                name("keypoints"),
+                format!(
+                    "row {i} ({x}, {y}) lies outside the {w} × {h} image; expected pixel coordinates (x, y) within it \
+                     and the size of the image they were detected in, as (width, height)"
+                ),
+            ));
         }
         if let Some(i) = self.scores.iter().position(|s| !s.is_finite()) {
             return Err(Error::input(name("scores"), format!("entry {i} is not finite (NaN or Inf)")));

@@ -286,6 +286,33 @@ fn nan_and_inf_are_rejected_by_name() {
 }
 
 #[test]
+fn keypoints_far_outside_the_image_are_rejected_by_name() {
+    let m = matcher();
+    let c = case();
+    let (w, h) = c.f0.image_size;
+    // A swapped (height, width): keypoints near the right border land past the claimed width.
+    let mut f = c.f0.clone();
+    f.keypoints[2] = [w - 1.0, 10.0];
+    f.image_size = (h, w);
+    expect_input_error(m.match_pair(&f, &c.f1), "keypoints0", "row 2");
+    // Far outside on each side, as normalised or another image's coordinates would be.
+    let margin = paraformer::features::KEYPOINT_MARGIN * w.max(h) + 1.0;
+    for p in [[-margin - 1.0, 5.0], [5.0, -margin - 1.0], [w + margin + 1.0, 5.0], [5.0, h + margin + 1.0], [1e30, 1e30]] {
+        let mut f = c.f1.clone();
+        f.image_size = (w, h);
+        f.keypoints[0] = p;
+        expect_input_error(m.match_pair(&c.f0, &f), "keypoints1", "lies outside the");
+    }
+    // On the borders and a little beyond (border conventions) is accepted.
+    let mut f = c.f1.clone();
+    f.image_size = (w, h);
+    f.keypoints[0] = [0.0, 0.0];
+    f.keypoints[1] = [w, h];
+    f.keypoints[2] = [-0.5 * margin, h + 0.5 * margin];
+    m.match_pair(&c.f0, &f).expect("keypoints on and just past the border");
+}
+
+#[test]
 fn wrong_shapes_and_widths_are_rejected_by_name() {
     let m = matcher();
     let c = case();

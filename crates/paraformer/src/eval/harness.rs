@@ -142,14 +142,14 @@ pub fn eval_homography(
         counts += x0.len();
         let (w, h) = f0.image_size;
         errors.push(match find_homography(&x0, &x1, ransac) {
-            Ok(r) => metrics::homography_corner_error(&r.model, &pair.h, w as f64, h as f64),
+            Ok(r) => metrics::homography_corner_error(&r.model, &pair.h, w as f64, h as f64)?,
             Err(_) => f64::INFINITY,
         });
         progress(k + 1, pairs.len());
     }
     let n = pairs.len().max(1) as f64;
     let mean = |v: &[f64]| v.iter().sum::<f64>() / n * 100.0;
-    let auc = metrics::auc(&errors, &[1.0, 3.0, 5.0, 10.0]);
+    let auc = metrics::auc(&errors, &[1.0, 3.0, 5.0, 10.0])?;
     Ok(HomographyRow {
         matcher: spec.name().into(),
         pairs: pairs.len(),
@@ -203,8 +203,8 @@ pub fn eval_pose(
         progress(k + 1, pairs.len());
     }
     let n = pairs.len().max(1) as f64;
-    let exact = metrics::auc(&errors, &[5.0, 10.0, 20.0]);
-    let approx = metrics::auc_approx(&errors, &[5, 10, 20]);
+    let exact = metrics::auc(&errors, &[5.0, 10.0, 20.0])?;
+    let approx = metrics::auc_approx(&errors, &[5, 10, 20])?;
     Ok(PoseRow {
         matcher: spec.name().into(),
         pairs: pairs.len(),
