@@ -207,7 +207,8 @@ class Matcher:
         """Matches the keypoints of two images.
 
         Args:
-            kpts0, kpts1: ``[M, 2]`` / ``[N, 2]`` pixel coordinates (x, y), float32 or float64.
+            kpts0, kpts1: ``[M, 2]`` / ``[N, 2]`` pixel coordinates (x, y), float32 or float64,
+                inside the image (at most 10% of its larger side outside).
             desc0, desc1: ``[M, D]`` / ``[N, D]`` descriptors, ``D = config["descriptor_dim"]``.
             size0, size1: image sizes ``(width, height)``.
             scores0, scores1: optional ``[M]`` / ``[N]`` detection scores (default 1.0).
