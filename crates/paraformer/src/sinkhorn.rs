@@ -11,21 +11,29 @@ use crate::kernels::{axpy, dot, exp_row, exp_row_bf16, logsumexp_plus};
 /// (`[rows/2][c][2]`, the layout `vdpbf16ps` reads). The sweeps are bound by memory
 /// traffic and instruction count, which bf16 halves; every sum stays f32.
 trait KernelStore: Copy + Default + Send + Sync {
-    /// Values `K` needs for `rows` rows of width `c`.
-    fn len(rows: usize, c: usize) -> usize;
-    /// `K_ij = exp(z_ij + f_i + g_j)` for the rows of one block.
-    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [Self], c: usize);
-    /// For the rows of one block: `a_i = μ_i / (K b)_i`, then `acc += Σ_i a_i K_i`.
-    fn sweep(k: &[Self], a: &mut [f32], mu: &[f32], b: &[f32], acc: &mut [f32], c: usize);
+    /// Width a row of `K` (and `b`, `Kᵀa`) is stored at for `c` columns; the padding is 0.
+    fn stride(c: usize) -> usize;
+    /// Values `K` needs for `rows` rows of stride `s`.
+    fn len(rows: usize, s: usize) -> usize;
+    /// `K_ij = exp(z_ij + f_i + g_j)` for the rows of one block (`c` columns of `z`, rows
+    /// of `K` at stride `s`; the padding is left as it is).
+    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [Self], c: usize, s: usize);
+    /// For the rows of one block: `a_i = μ_i / (K b)_i`, then `acc += Σ_i a_i K_i`, over
+    /// rows of stride `s`.
+    fn sweep(k: &[Self], a: &mut [f32], mu: &[f32], b: &[f32], acc: &mut [f32], s: usize);
 }
 
 impl KernelStore for f32 {
-    fn len(rows: usize, c: usize) -> usize {
-        rows * c
+    /// Whole 64-byte lines: with 2049 columns every vector load of a row crossed a line.
+    fn stride(c: usize) -> usize {
+        c.next_multiple_of(16)
     }
-    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [f32], c: usize) {
-        for ((zr, kr), &fi) in z.chunks_exact(c).zip(k.chunks_exact_mut(c)).zip(f) {
-            exp_row(zr, fi, g, kr);
+    fn len(rows: usize, s: usize) -> usize {
+        rows * s
+    }
+    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [f32], c: usize, s: usize) {
+        for ((zr, kr), &fi) in z.chunks_exact(c).zip(k.chunks_exact_mut(s)).zip(f) {
+            exp_row(zr, fi, g, &mut kr[..c]);
         }
     }
     fn sweep(k: &[f32], a: &mut [f32], mu: &[f32], b: &[f32], acc: &mut [f32], c: usize) {
@@ -193,10 +201,13 @@ unsafe fn sweep_f32_pairs_avx2(k: &[f32], a: &mut [f32], mu: &[f32], b: &[f32], 
 }
 
 impl KernelStore for u16 {
+    fn stride(c: usize) -> usize {
+        c
+    }
     fn len(rows: usize, c: usize) -> usize {
         rows.div_ceil(2) * 2 * c
     }
-    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [u16], c: usize) {
+    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [u16], c: usize, _: usize) {
         let mut row = vec![0u16; c];
         for (i, (zr, &fi)) in z.chunks_exact(c).zip(f).enumerate() {
             exp_row_bf16(zr, fi, g, &mut row);
@@ -275,6 +286,25 @@ unsafe fn sweep_bf16_pairs(k: &[u16], a: &mut [f32], mu: &[f32], b: &[f32], acc:
     }
 }
 
+/// `len` zeroed values starting on a 64-byte line (the vector has room to shift to it),
+/// so that the sweeps' row loads never straddle two lines.
+struct LineAligned<T> {
+    data: Vec<T>,
+    start: usize,
+    len: usize,
+}
+
+impl<T: Copy + Default> LineAligned<T> {
+    fn new(len: usize) -> Self {
+        let data = vec![T::default(); len + 64];
+        let start = data.as_ptr().align_offset(64).min(64);
+        Self { data, start, len }
+    }
+    fn as_mut_slice(&mut self) -> &mut [T] {
+        &mut self.data[self.start..self.start + self.len]
+    }
+}
+
 /// Rows per parallel task of the scaling-domain sweep (fixed, for reproducible sums).
 const TASK_ROWS: usize = 32;
 
@@ -334,35 +364,41 @@ fn optimal_transport<K: KernelStore>(z: &mut Matrix, bin_score: f32, iters: usiz
     // Start with each row's maximum absorbed, so that K ≤ 1.
     let mut f: Vec<f32> = z.data.par_chunks(c).map(|row| -row.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b))).collect();
     let mut g = vec![0.0f32; c];
-    let mut k = vec![K::default(); K::len(r, c)];
-    let block = K::len(TASK_ROWS, c);
+    // K, b and Kᵀa at `stride ≥ c`; K's padding columns stay 0, so b's and Kᵀa's do too.
+    let stride = K::stride(c);
+    let mut k_store = LineAligned::<K>::new(K::len(r, stride));
+    let k = k_store.as_mut_slice();
+    let block = K::len(TASK_ROWS, stride);
     let rebuild = |k: &mut [K], f: &[f32], g: &[f32]| {
         k.par_chunks_mut(block)
             .zip(z.data.par_chunks(TASK_ROWS * c))
             .zip(f.par_chunks(TASK_ROWS))
-            .for_each(|((kb, zb), fb)| K::fill(zb, fb, g, kb, c));
+            .for_each(|((kb, zb), fb)| K::fill(zb, fb, g, kb, c, stride));
     };
-    rebuild(&mut k, &f, &g);
+    rebuild(k, &f, &g);
     let mut a = vec![1.0f32; r];
-    let mut b = vec![1.0f32; c];
+    let mut b_store = LineAligned::<f32>::new(stride);
+    let b = b_store.as_mut_slice();
+    b[..c].fill(1.0);
     // Kᵀa is summed per block of TASK_ROWS rows, then over the blocks in order: the same
     // additions in the same order whatever the thread count, so results are reproducible.
     let blocks = r.div_ceil(TASK_ROWS);
-    let mut partial = vec![0.0f32; blocks * c];
-    let mut kta = vec![0.0f32; c];
+    let mut partial_store = LineAligned::<f32>::new(blocks * stride);
+    let partial = partial_store.as_mut_slice();
+    let mut kta = vec![0.0f32; stride];
     for it in 0..iters {
         // a_i = μ_i / (K b)_i, and Kᵀa accumulated in the same sweep.
         partial
-            .par_chunks_mut(c)
+            .par_chunks_mut(stride)
             .zip(a.par_chunks_mut(TASK_ROWS))
             .zip(k.par_chunks(block))
             .zip(mu.par_chunks(TASK_ROWS))
             .for_each(|(((acc, ac), kc), muc)| {
                 acc.fill(0.0);
-                K::sweep(kc, ac, muc, &b, acc, c);
+                K::sweep(kc, ac, muc, b, acc, stride);
             });
         kta.fill(0.0);
-        for acc in partial.chunks_exact(c) {
+        for acc in partial.chunks_exact(stride) {
             axpy(1.0, acc, &mut kta);
         }
         for ((bj, nuj), s) in b.iter_mut().zip(&nu).zip(&kta) {
@@ -371,20 +407,20 @@ fn optimal_transport<K: KernelStore>(z: &mut Matrix, bin_score: f32, iters: usiz
         // |ln s| > ABSORB (or NaN), without a logarithm per entry and iteration.
         let (lo, hi) = ((-ABSORB).exp(), ABSORB.exp());
         let out_of_range = |s: &[f32]| s.iter().any(|v| !(lo..=hi).contains(v));
-        if it + 1 < iters && (out_of_range(&a) || out_of_range(&b)) {
+        if it + 1 < iters && (out_of_range(&a) || out_of_range(&b[..c])) {
             for (fi, ai) in f.iter_mut().zip(&mut a) {
                 *fi += ai.ln();
                 *ai = 1.0;
             }
-            for (gj, bj) in g.iter_mut().zip(&mut b) {
+            for (gj, bj) in g.iter_mut().zip(b.iter_mut()) {
                 *gj += bj.ln();
                 *bj = 1.0;
             }
-            rebuild(&mut k, &f, &g);
+            rebuild(k, &f, &g);
         }
     }
     let u: Vec<f32> = f.iter().zip(&a).map(|(fi, ai)| fi + ai.ln()).collect();
-    let v: Vec<f32> = g.iter().zip(&b).map(|(gj, bj)| gj + bj.ln()).collect();
+    let v: Vec<f32> = g.iter().zip(b.iter()).map(|(gj, bj)| gj + bj.ln()).collect();
     z.data.par_chunks_mut(c).zip(u.par_iter()).for_each(|(row, ui)| {
         for (p, vj) in row.iter_mut().zip(&v) {
             *p += ui + vj - norm;
@@ -525,8 +561,9 @@ fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32, ite
 
     #[test]
     fn fast_sinkhorn_equals_the_log_domain_reference() {
-        // Ordinary, wide (±150, forcing absorptions) and lopsided score ranges.
-        for (m, n, spread, bin) in [(40, 57, 6.0, 1.0), (33, 20, 300.0, -40.0), (64, 9, 60.0, 90.0), (1, 5, 10.0, 0.0)] {
+        // Ordinary, wide (±150, forcing absorptions) and lopsided score ranges; 32 columns
+        // (a row stride without padding) over three row blocks.
+        for (m, n, spread, bin) in [(40, 57, 6.0, 1.0), (33, 20, 300.0, -40.0), (64, 9, 60.0, 90.0), (1, 5, 10.0, 0.0), (70, 31, 20.0, 1.0)] {
             let s: Vec<f32> = scores(m, n).iter().map(|v| v * spread / 6.0).collect();
             for iters in [0, 1, 7, 100] {
                 let mut fast = Matrix::zeros(m + 1, n + 1);
@@ -620,7 +657,7 @@ fn log_optimal_transport(scores: &[f32], m: usize, n: usize, bin_score: f32, ite
         let z: Vec<f32> = scores(rows, c).iter().map(|v| v * 0.3).collect();
         let (f, g) = (vec![0.0f32; rows], vec![0.0f32; c]);
         let mut k = vec![0u16; <u16 as KernelStore>::len(rows, c)];
-        <u16 as KernelStore>::fill(&z, &f, &g, &mut k, c);
+        <u16 as KernelStore>::fill(&z, &f, &g, &mut k, c, c);
         let (mu, b): (Vec<f32>, Vec<f32>) = ((0..rows).map(|i| 0.1 + i as f32 * 0.01).collect(), (0..c).map(|j| 1.0 + j as f32 * 0.02).collect());
         let (mut a0, mut acc0) = (vec![0.0f32; rows], vec![0.0f32; c]);
         let (mut a1, mut acc1) = (vec![0.0f32; rows], vec![0.0f32; c]);
