@@ -201,17 +201,18 @@ unsafe fn sweep_f32_pairs_avx2(k: &[f32], a: &mut [f32], mu: &[f32], b: &[f32], 
 }
 
 impl KernelStore for u16 {
+    /// A pair of rows then spans whole 64-byte lines, as in f32.
     fn stride(c: usize) -> usize {
-        c
+        c.next_multiple_of(16)
     }
-    fn len(rows: usize, c: usize) -> usize {
-        rows.div_ceil(2) * 2 * c
+    fn len(rows: usize, s: usize) -> usize {
+        rows.div_ceil(2) * 2 * s
     }
-    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [u16], c: usize, _: usize) {
+    fn fill(z: &[f32], f: &[f32], g: &[f32], k: &mut [u16], c: usize, s: usize) {
         let mut row = vec![0u16; c];
         for (i, (zr, &fi)) in z.chunks_exact(c).zip(f).enumerate() {
             exp_row_bf16(zr, fi, g, &mut row);
-            let pair = &mut k[(i / 2) * 2 * c..(i / 2 + 1) * 2 * c];
+            let pair = &mut k[(i / 2) * 2 * s..(i / 2 + 1) * 2 * s];
             for (j, &x) in row.iter().enumerate() {
                 pair[2 * j + i % 2] = x;
             }
