@@ -14,6 +14,7 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Iterator
 
 import torch
 
@@ -23,15 +24,16 @@ from paraformer_train.model import Matcher  # noqa: E402
 from train import ensure_holdout, model_config, validate  # noqa: E402
 
 
-def snapshots(path: str) -> list[tuple[int, Matcher, dict, dict]]:
+def snapshots(path: str) -> Iterator[tuple[int, Matcher, dict, dict]]:
     """(pairs, an untrained model of the snapshot's kind, EMA state, extra fields) of every
-    snapshot in a file. A checkpoint's model carries its run's ``--self-rotary``."""
+    snapshot in a file, one model built at a time. A checkpoint's model carries its run's
+    ``--self-rotary``."""
     blob = torch.load(path, map_location="cpu", weights_only=False)
     if "ema" in blob and "pairs" in blob:  # a checkpoint: its EMA weights
-        m = Matcher_from_args(blob["args"])
-        return [(blob["pairs"], m, blob["ema"], {"steps": blob.get("steps")})]
-    return [(p, Matcher(s["config"], s.get("self_rotary")), s["ema"], {"steps": s.get("steps"), "train_s": s.get("train_s")})
-            for p, s in sorted(blob.items())]
+        yield blob["pairs"], Matcher_from_args(blob["args"]), blob["ema"], {"steps": blob.get("steps")}
+        return
+    for p, s in sorted(blob.items()):
+        yield p, Matcher(s["config"], s.get("self_rotary")), s["ema"], {"steps": s.get("steps"), "train_s": s.get("train_s")}
 
 
 def Matcher_from_args(args: dict) -> Matcher:  # noqa: N802 (a constructor in all but name)
