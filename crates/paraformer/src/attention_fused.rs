@@ -215,6 +215,38 @@ fn pack_values_bf16(v: View, heads: usize, half: usize) -> Vec<u16> {
     });
     out
 }
+/// Values as the fp32 kernels read them: row `j` of head `h` at `data[h·head + j·stride..][..d]`.
+#[derive(Clone, Copy)]
+struct HeadValues<'a> {
+    data: &'a [f32],
+    head: usize,
+    stride: usize,
+}
+
+impl HeadValues<'_> {
+    /// Row `j` of head `h`.
+    fn row(&self, h: usize, j: usize) -> *const f32 {
+        self.data[h * self.head + j * self.stride..].as_ptr()
+    }
+}
+
+/// fp32 values of every head with contiguous rows, `[H][rows][d]` in `buf`, where `v`'s rows
+/// are strided (several heads, or a slice of a wider matrix): the value loops then stream
+/// sequential lines instead of 2 lines in every `stride`. In place (no copy) otherwise.
+fn head_values<'a>(v: View<'a>, heads: usize, buf: &'a mut Vec<f32>) -> HeadValues<'a> {
+    let (n, d) = (v.rows, v.cols / heads);
+    if v.stride == d {
+        return HeadValues { data: v.data, head: d, stride: d };
+    }
+    *buf = vec![0.0; heads * n * d];
+    buf.par_chunks_mut(n * d).enumerate().for_each(|(h, out)| {
+        for (j, o) in out.chunks_exact_mut(d).enumerate() {
+            o.copy_from_slice(&v.row(j)[h * d..(h + 1) * d]);
+        }
+    });
+    HeadValues { data: buf, head: n * d, stride: d }
+}
+
 // ---- vector helpers -----------------------------------------------------------------
 
 /// `2^x` by range reduction and a polynomial `p(f) ≈ 2^f` on [−½, ½] (coefficients of
@@ -449,6 +481,8 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool, bf16: 
     let pk = pack(q, k, heads, bf16);
     // Padded to `np` rows: the tile kernels read whole blocks of 32 keys.
     let v16 = if bf16 { pack_values_bf16(v, heads, pk.np / 2) } else { Vec::new() };
+    let mut vbuf = Vec::new();
+    let v = if bf16 { HeadValues { data: v.data, head: 0, stride: 0 } } else { head_values(v, heads, &mut vbuf) };
     let d = pk.d;
     let strips = pk.mp / STRIP;
     let dst = SharedMut(out.data.as_mut_ptr());
@@ -484,7 +518,7 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool, bf16: 
 /// One strip of self attention: rows `st·16..` of head `h`.
 struct SelfJob<'a> {
     pk: &'a Packed,
-    v: View<'a>,
+    v: HeadValues<'a>,
     v16: &'a [u16],
     h: usize,
     st: usize,
@@ -526,7 +560,7 @@ unsafe fn strip_rows<const D: usize, const BF: bool>(
     rows: usize,
     s: &mut [f32],
     p16: &mut [u16],
-    v: View,
+    v: HeadValues,
     v16: &[u16],
     dst: SharedMut,
 ) -> [f32; STRIP] {
@@ -546,7 +580,7 @@ unsafe fn strip_rows<const D: usize, const BF: bool>(
             values_bf16::<D>(p16.as_ptr(), ld, n, vh, &mut out);
         }
     } else {
-        values_f32::<D>(s.as_ptr(), ld, n, v.data.as_ptr().add(h * D), v.stride, &mut out);
+        values_f32::<D>(s.as_ptr(), ld, n, v.row(h, 0), v.stride, &mut out);
     }
     for (r, o) in out.iter().enumerate().take(rows) {
         let row = dst.at((r0 + r) * c + h * D);
@@ -610,6 +644,9 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
     let pk = pack(qx, ky, heads, bf16);
     let vy16 = if bf16 { pack_values_bf16(vy, heads, pk.np / 2) } else { Vec::new() };
     let vx16 = if bf16 { pack_values_bf16(vx, heads, m.div_ceil(2)) } else { Vec::new() };
+    let (mut vxbuf, mut vybuf) = (Vec::new(), Vec::new());
+    let unused = HeadValues { data: &[], head: 0, stride: 0 };
+    let (vx, vy) = if bf16 { (unused, unused) } else { (head_values(vx, heads, &mut vxbuf), head_values(vy, heads, &mut vybuf)) };
     let d = pk.d;
     let split = CrossTasks::new(m);
     let chunks = split.chunks();
@@ -667,8 +704,8 @@ pub(crate) fn merge_columns(states: &[ColumnState], heads: usize, chunks: usize,
 /// One task of the shared cross attention: rows `rows.0..rows.1` of head `h`.
 struct CrossJob<'a> {
     pk: &'a Packed,
-    vx: View<'a>,
-    vy: View<'a>,
+    vx: HeadValues<'a>,
+    vy: HeadValues<'a>,
     vx16: &'a [u16],
     vy16: &'a [u16],
     h: usize,
@@ -733,7 +770,7 @@ unsafe fn cross_chunk<const D: usize, const BF: bool>(job: &CrossJob) -> ColumnS
             // Pairs of rows r0, r0+1, … (r0 is even): pair index r0/2 of the packed values.
             column_values_bf16::<D>(sp, np, ld, rows, &mut st, vx16.as_ptr().add((h * pk.m.div_ceil(2) + r0 / 2) * D * 2));
         } else {
-            column_values::<D>(sp, np, ld, rows, &mut st, vx.data.as_ptr().add(r0 * vx.stride + h * D), vx.stride);
+            column_values::<D>(sp, np, ld, rows, &mut st, vx.row(h, r0), vx.stride);
         }
         // Rows: softmax over the keys, values of image 1, a strip at a time.
         for g in 0..rows.div_ceil(STRIP) {
@@ -903,6 +940,27 @@ pub(crate) mod tests {
                     assert!(e < 0.005 * amp, "bf16 {name} {m}×{n}: {e}");
                 }
             }
+        }
+    }
+
+    /// Values read from a slice of a wider matrix (as of a fused projection), at one head
+    /// (rows strided, copied to contiguous rows) and two, in self and cross attention.
+    #[test]
+    fn fused_reads_strided_values() {
+        if !super::available(32) {
+            eprintln!("skipped: no AVX2 or AVX-512 here");
+            return;
+        }
+        for &(m, n, c, heads) in &[(70, 45, 32, 1), (40, 90, 64, 2), (33, 20, 96, 1)] {
+            let (q, k) = (random(m, c, 1, 1.0), random(n, c, 2, 1.0));
+            let (wide_x, wide_y) = (random(m, 3 * c, 3, 1.0), random(n, 3 * c, 4, 1.0));
+            let (vx, vy) = (wide_x.view().cols(c, 2 * c), wide_y.view().cols(2 * c, 3 * c));
+            let (want, _) = attention(&general(), q.view(), k.view(), vy, heads, false).expect("general");
+            let (got, _) = attention(&Ctx::default(), q.view(), k.view(), vy, heads, false).expect("fused");
+            assert!(max_diff(&want.data, &got.data) < 2e-6, "self c{c} h{heads}: {}", max_diff(&want.data, &got.data));
+            let (wx, wy) = cross_attention_shared(&general(), q.view(), k.view(), vx, vy, heads).expect("general");
+            let (gx, gy) = cross_attention_shared(&Ctx::default(), q.view(), k.view(), vx, vy, heads).expect("fused");
+            assert!(max_diff(&wx.data, &gx.data) < 2e-6 && max_diff(&wy.data, &gy.data) < 2e-6, "cross c{c} h{heads}");
         }
     }
 
