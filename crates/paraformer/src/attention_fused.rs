@@ -217,15 +217,15 @@ fn pack_values_bf16(v: View, heads: usize, half: usize) -> Vec<u16> {
 }
 /// Values as the fp32 kernels read them: row `j` of head `h` at `data[h·head + j·stride..][..d]`.
 #[derive(Clone, Copy)]
-struct HeadValues<'a> {
+pub(crate) struct HeadValues<'a> {
     data: &'a [f32],
     head: usize,
-    stride: usize,
+    pub(crate) stride: usize,
 }
 
 impl HeadValues<'_> {
     /// Row `j` of head `h`.
-    fn row(&self, h: usize, j: usize) -> *const f32 {
+    pub(crate) fn row(&self, h: usize, j: usize) -> *const f32 {
         self.data[h * self.head + j * self.stride..].as_ptr()
     }
 }
@@ -233,7 +233,7 @@ impl HeadValues<'_> {
 /// fp32 values of every head with contiguous rows, `[H][rows][d]` in `buf`, where `v`'s rows
 /// are strided (several heads, or a slice of a wider matrix): the value loops then stream
 /// sequential lines instead of 2 lines in every `stride`. In place (no copy) otherwise.
-fn head_values<'a>(v: View<'a>, heads: usize, buf: &'a mut Vec<f32>) -> HeadValues<'a> {
+pub(crate) fn head_values<'a>(v: View<'a>, heads: usize, buf: &'a mut Vec<f32>) -> HeadValues<'a> {
     let (n, d) = (v.rows, v.cols / heads);
     if v.stride == d {
         return HeadValues { data: v.data, head: d, stride: d };
@@ -944,7 +944,8 @@ pub(crate) mod tests {
     }
 
     /// Values read from a slice of a wider matrix (as of a fused projection), at one head
-    /// (rows strided, copied to contiguous rows) and two, in self and cross attention.
+    /// (rows strided, copied to contiguous rows) and two, in self and cross attention, by
+    /// the AVX-512 kernels and their AVX2 twin.
     #[test]
     fn fused_reads_strided_values() {
         if !super::available(32) {
@@ -961,6 +962,11 @@ pub(crate) mod tests {
             let (wx, wy) = cross_attention_shared(&general(), q.view(), k.view(), vx, vy, heads).expect("general");
             let (gx, gy) = cross_attention_shared(&Ctx::default(), q.view(), k.view(), vx, vy, heads).expect("fused");
             assert!(max_diff(&wx.data, &gx.data) < 2e-6 && max_diff(&wy.data, &gy.data) < 2e-6, "cross c{c} h{heads}");
+            // The AVX2 twin, called directly (it reads the values the same way).
+            let (got, _) = crate::attention_fused_avx2::attention(q.view(), k.view(), vy, heads, false).expect("avx2");
+            assert!(max_diff(&want.data, &got.data) < 2e-6, "avx2 self c{c} h{heads}");
+            let (gx, gy) = crate::attention_fused_avx2::cross_attention_shared(q.view(), k.view(), vx, vy, heads).expect("avx2");
+            assert!(max_diff(&wx.data, &gx.data) < 2e-6 && max_diff(&wy.data, &gy.data) < 2e-6, "avx2 cross c{c} h{heads}");
         }
     }
 

@@ -18,7 +18,7 @@ use std::arch::x86_64::*;
 
 use rayon::prelude::*;
 
-use crate::attention_fused::x86::{merge_columns, pack, ColumnState, CrossTasks, Packed, StripOut, MAX_D, NEG, STRIP};
+use crate::attention_fused::x86::{head_values, merge_columns, pack, ColumnState, CrossTasks, HeadValues, Packed, StripOut, MAX_D, NEG, STRIP};
 use crate::error::Result;
 use crate::kernels::{internal, sum_in_order, Matrix, SharedMut, View};
 
@@ -26,20 +26,6 @@ use crate::kernels::{internal, sum_in_order, Matrix, SharedMut, View};
 /// condition, which the AVX-512 ones share.
 fn runs(d: usize) -> bool {
     crate::attention_fused::x86::available(d)
-}
-
-/// Values of every head contiguous, `[H][n][d]`: the value product streams one head's
-/// values once per 6-row tile, so they should stay in L2 (`[n][H·d]` rows of the
-/// projections are 3C apart and are not).
-fn pack_values(v: View, heads: usize) -> Vec<f32> {
-    let (n, d) = (v.rows, v.cols / heads);
-    let mut out = vec![0.0f32; heads * n * d];
-    out.par_chunks_mut(n * d).enumerate().for_each(|(h, o)| {
-        for (j, row) in o.chunks_exact_mut(d).enumerate() {
-            row.copy_from_slice(&v.row(j)[h * d..(h + 1) * d]);
-        }
-    });
-    out
 }
 
 // ---- vector helpers -----------------------------------------------------------------
@@ -221,7 +207,7 @@ unsafe fn values_tile<const R: usize>(p: *const f32, ld: usize, n: usize, v: *co
 /// maximum; `s` then holds the unnormalised probabilities `2^(s − max)`.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-unsafe fn strip_rows<const D: usize>(pk: &Packed, h: usize, r0: usize, rows: usize, s: &mut [f32], vp: &[f32], dst: SharedMut) -> ([f32; STRIP], [f32; STRIP]) {
+unsafe fn strip_rows<const D: usize>(pk: &Packed, h: usize, r0: usize, rows: usize, s: &mut [f32], vp: HeadValues, dst: SharedMut) -> ([f32; STRIP], [f32; STRIP]) {
     let (n, np, ld, c) = (pk.n, pk.np, pk.ld, pk.heads * D);
     let (mut inv, mut top) = ([0.0f32; STRIP], [0.0f32; STRIP]);
     for r in 0..STRIP {
@@ -229,7 +215,7 @@ unsafe fn strip_rows<const D: usize>(pk: &Packed, h: usize, r0: usize, rows: usi
         (inv[r], top[r]) = (1.0 / sum, mx);
     }
     let mut out: StripOut = [[0.0; MAX_D]; STRIP];
-    values::<D>(s.as_ptr(), ld, n, vp.as_ptr().add(h * n * D), D, &mut out);
+    values::<D>(s.as_ptr(), ld, n, vp.row(h, 0), vp.stride, &mut out);
     for (r, o) in out.iter().enumerate().take(rows) {
         let row = dst.at((r0 + r) * c + h * D);
         for (t, x) in o[..D].iter().enumerate() {
@@ -260,7 +246,10 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool) -> Res
         return Ok((out, col_sums.then(|| vec![0.0; n])));
     }
     let pk = pack(q, k, heads, false);
-    let vp = pack_values(v, heads);
+    // Values of each head in contiguous rows: the value product streams them once per
+    // 6-row tile, so they should stay in L2 (rows of the projections are 3C apart).
+    let mut vbuf = Vec::new();
+    let vp = head_values(v, heads, &mut vbuf);
     let (d, strips) = (pk.d, pk.mp / STRIP);
     let dst = SharedMut(out.data.as_mut_ptr());
     let per_task: Vec<Vec<f32>> = (0..heads * strips)
@@ -274,10 +263,10 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool) -> Res
                 // rows st·16.. of columns h·d..(h+1)·d of `out`.
                 unsafe {
                     match d {
-                        16 => self_strip::<16>(&pk, &vp, h, st, dst, s, &mut cs),
-                        32 => self_strip::<32>(&pk, &vp, h, st, dst, s, &mut cs),
-                        64 => self_strip::<64>(&pk, &vp, h, st, dst, s, &mut cs),
-                        _ => self_strip::<96>(&pk, &vp, h, st, dst, s, &mut cs),
+                        16 => self_strip::<16>(&pk, vp, h, st, dst, s, &mut cs),
+                        32 => self_strip::<32>(&pk, vp, h, st, dst, s, &mut cs),
+                        64 => self_strip::<64>(&pk, vp, h, st, dst, s, &mut cs),
+                        _ => self_strip::<96>(&pk, vp, h, st, dst, s, &mut cs),
                     }
                 }
                 cs
@@ -290,7 +279,7 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool) -> Res
 /// One strip of self attention: rows `st·16..` of head `h`, and their probabilities
 /// summed per column into `cs` when it is not empty.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn self_strip<const D: usize>(pk: &Packed, vp: &[f32], h: usize, st: usize, dst: SharedMut, s: &mut [f32], cs: &mut [f32]) {
+unsafe fn self_strip<const D: usize>(pk: &Packed, vp: HeadValues, h: usize, st: usize, dst: SharedMut, s: &mut [f32], cs: &mut [f32]) {
     let r0 = st * STRIP;
     let rows = STRIP.min(pk.m - r0);
     strip_scores::<D>(pk, h, r0, s);
@@ -317,7 +306,8 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
         return Ok((out_x, out_y));
     }
     let pk = pack(qx, ky, heads, false);
-    let vyp = pack_values(vy, heads);
+    let (mut vxbuf, mut vybuf) = (Vec::new(), Vec::new());
+    let (vx, vyp) = (head_values(vx, heads, &mut vxbuf), head_values(vy, heads, &mut vybuf));
     let d = pk.d;
     let split = CrossTasks::new(m);
     let chunks = split.chunks();
@@ -333,10 +323,10 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
             // pass with running column maxima (both write the same rows of `out_x`).
             unsafe {
                 match d {
-                    16 => cross_chunk_one_scale::<16>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<16>(&pk, vx, &vyp, h, rows, dx)),
-                    32 => cross_chunk_one_scale::<32>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<32>(&pk, vx, &vyp, h, rows, dx)),
-                    64 => cross_chunk_one_scale::<64>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<64>(&pk, vx, &vyp, h, rows, dx)),
-                    _ => cross_chunk_one_scale::<96>(&pk, vx, &vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<96>(&pk, vx, &vyp, h, rows, dx)),
+                    16 => cross_chunk_one_scale::<16>(&pk, vx, vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<16>(&pk, vx, vyp, h, rows, dx)),
+                    32 => cross_chunk_one_scale::<32>(&pk, vx, vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<32>(&pk, vx, vyp, h, rows, dx)),
+                    64 => cross_chunk_one_scale::<64>(&pk, vx, vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<64>(&pk, vx, vyp, h, rows, dx)),
+                    _ => cross_chunk_one_scale::<96>(&pk, vx, vyp, h, rows, dx).unwrap_or_else(|| cross_chunk::<96>(&pk, vx, vyp, h, rows, dx)),
                 }
             }
         })
@@ -358,7 +348,7 @@ const ONE_SCALE_FLOOR: f32 = f32::from_bits((127 - 100) << 23);
 /// sum fell below [`ONE_SCALE_FLOOR`] (scores spread over more than ~100 binary orders, or
 /// not finite): the caller runs the exact [`cross_chunk`] instead.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn cross_chunk_one_scale<const D: usize>(pk: &Packed, vx: View, vyp: &[f32], h: usize, (first, last): (usize, usize), dx: SharedMut) -> Option<ColumnState> {
+unsafe fn cross_chunk_one_scale<const D: usize>(pk: &Packed, vx: HeadValues, vyp: HeadValues, h: usize, (first, last): (usize, usize), dx: SharedMut) -> Option<ColumnState> {
     let (n, np, ld) = (pk.n, pk.np, pk.ld);
     let (mut sum, mut acc) = (vec![0.0f32; np], vec![0.0f32; np * D]);
     let mut s = vec![0.0f32; STRIP * ld];
@@ -380,7 +370,7 @@ unsafe fn cross_chunk_one_scale<const D: usize>(pk: &Packed, vx: View, vyp: &[f3
         let mut xs: StripOut = [[0.0; MAX_D]; STRIP];
         for r in 0..rows {
             w[r] = (top[r] - g).exp2();
-            let row = std::slice::from_raw_parts(vx.data.as_ptr().add((r0 + r) * vx.stride + h * D), D);
+            let row = std::slice::from_raw_parts(vx.row(h, r0 + r), D);
             for (x, v) in xs[r].iter_mut().zip(row) {
                 *x = v * w[r];
             }
@@ -422,7 +412,8 @@ unsafe fn cross_chunk_one_scale<const D: usize>(pk: &Packed, vx: View, vyp: &[f3
 pub(super) fn one_scale_holds(qx: View, ky: View, vx: View, vy: View, heads: usize) -> bool {
     let (m, d) = (qx.rows, qx.cols / heads);
     let pk = pack(qx, ky, heads, false);
-    let vyp = pack_values(vy, heads);
+    let (mut vxbuf, mut vybuf) = (Vec::new(), Vec::new());
+    let (vx, vyp) = (head_values(vx, heads, &mut vxbuf), head_values(vy, heads, &mut vybuf));
     let mut scratch = Matrix::zeros(m, qx.cols);
     let dx = SharedMut(scratch.data.as_mut_ptr());
     let split = CrossTasks::new(m);
@@ -432,10 +423,10 @@ pub(super) fn one_scale_holds(qx: View, ky: View, vx: View, vy: View, heads: usi
         // SAFETY: the tests call this only where AVX2 and FMA are present.
         unsafe {
             match d {
-                16 => cross_chunk_one_scale::<16>(&pk, vx, &vyp, h, rows, dx).is_some(),
-                32 => cross_chunk_one_scale::<32>(&pk, vx, &vyp, h, rows, dx).is_some(),
-                64 => cross_chunk_one_scale::<64>(&pk, vx, &vyp, h, rows, dx).is_some(),
-                _ => cross_chunk_one_scale::<96>(&pk, vx, &vyp, h, rows, dx).is_some(),
+                16 => cross_chunk_one_scale::<16>(&pk, vx, vyp, h, rows, dx).is_some(),
+                32 => cross_chunk_one_scale::<32>(&pk, vx, vyp, h, rows, dx).is_some(),
+                64 => cross_chunk_one_scale::<64>(&pk, vx, vyp, h, rows, dx).is_some(),
+                _ => cross_chunk_one_scale::<96>(&pk, vx, vyp, h, rows, dx).is_some(),
             }
         }
     })
@@ -463,7 +454,7 @@ unsafe fn column_sums(e: *const f32, ld: usize, np: usize, rows: usize, w: &[f32
 /// One task of the shared cross attention: rows `first..last` of head `h`; returns its
 /// column state (running maxima, sums and `Σ_i e_ij·vx_i`) for the merge.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn cross_chunk<const D: usize>(pk: &Packed, vx: View, vyp: &[f32], h: usize, (first, last): (usize, usize), dx: SharedMut) -> ColumnState {
+unsafe fn cross_chunk<const D: usize>(pk: &Packed, vx: HeadValues, vyp: HeadValues, h: usize, (first, last): (usize, usize), dx: SharedMut) -> ColumnState {
     let (np, ld) = (pk.np, pk.ld);
     let mut st = ColumnState { max: vec![NEG; np], sum: vec![0.0; np], acc: vec![0.0; np * D] };
     let mut s = vec![0.0f32; STRIP * ld];
@@ -497,7 +488,7 @@ unsafe fn cross_chunk<const D: usize>(pk: &Packed, vx: View, vyp: &[f32], h: usi
                 }
             }
         }
-        column_values::<D>(sp, np, ld, rows, &mut st, vx.data.as_ptr().add(r0 * vx.stride + h * D), vx.stride);
+        column_values::<D>(sp, np, ld, rows, &mut st, vx.row(h, r0), vx.stride);
         // Rows: softmax over the keys, values of image 1.
         strip_rows::<D>(pk, h, r0, rows, &mut s, vyp, dx);
     }
