@@ -26,8 +26,11 @@ common=(--preset paraformer --dim "${DIM:-64}" --heads "${HEADS:-2}" --init "$IN
         --real-fraction 0.5 --seed 11 --threads "${THREADS:-2}")
 if [ -n "$POSITIVE_PX" ]; then common+=(--synthetic-positive-px "$POSITIVE_PX"); fi
 mkdir -p "$OUT"
-if [ ! -s "$OUT/init/log.jsonl" ]; then
+# The initial weights' validation, redone when OUT was last used with another INIT.
+if [ ! -s "$OUT/init/log.jsonl" ] || [ "$(cat "$OUT/init/INIT" 2>/dev/null)" != "$INIT" ]; then
+  rm -rf "$OUT/init"
   python train.py --run "$OUT/init" --work "$OUT/init" "${common[@]}" --depth 4 --validate-only > "$OUT/init.log" 2>&1
+  echo "$INIT" > "$OUT/init/INIT"
 fi
 for arm in $ARMS; do
   case $arm in
