@@ -4,7 +4,7 @@ from typing import Optional, Union, final
 
 __all__ = [
     "_Matcher", "flops", "find_homography", "find_fundamental", "find_relative_pose", "pose_auc",
-    "pose_auc_approx", "homography_corner_error", "gt_matches_from_homography", "match_baseline",
+    "pose_auc_approx", "homography_corner_error", "gt_matches_from_homography", "match_baseline", "parse_baseline",
     "pretrained_names", "extract", "extract_file", "check_extract_memory", "load_image", "set_memory_limit", "memory_limit",
     "attention_forward_bf16", "attention_backward_bf16", "attention_bf16_available", "allocator",
     "amx", "set_amx", "simd",
@@ -65,6 +65,7 @@ def pose_auc_approx(errors: list[float], thresholds: list[int]) -> list[float]: 
 def homography_corner_error(h_est: list[float], h_gt: list[float], width: float, height: float) -> float: ...
 def gt_matches_from_homography(h: list[float], kpts0: bytes, kpts1: bytes, threshold: float = 3.0) -> tuple[list[int], list[int]]: ...
 def match_baseline(desc0: bytes, desc1: bytes, dim: int, method: str = "mnn", ratio: float = 0.8) -> list[int]: ...
+def parse_baseline(spec: str) -> Optional[tuple[str, float]]: ...
 def pretrained_names() -> list[str]: ...
 
 _Extracted = tuple[bytes, bytes, bytes, float, float]

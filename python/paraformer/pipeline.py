@@ -17,16 +17,12 @@ class Baseline:
     ``match_dicts`` / ``match_many`` interface; scores are cosine similarities mapped to [0, 1]."""
 
     def __init__(self, spec: str):
-        method, _, ratio = spec.partition(":")
-        if method not in BASELINES or (ratio and method != "ratio"):
+        from ._paraformer import parse_baseline
+
+        parsed = parse_baseline(spec)  # checked in the core: a ratio in (0, 1]
+        if parsed is None:
             raise ValueError(f"matcher: unknown baseline {spec!r}")
-        try:
-            self.ratio = float(ratio) if ratio else 0.8
-        except ValueError:
-            raise ValueError(f"matcher: bad ratio in {spec!r}") from None
-        if not 0.0 < self.ratio <= 1.0:  # False for NaN too
-            raise ValueError(f"matcher: ratio in {spec!r} must be in (0, 1], e.g. 0.8")
-        self.method = method
+        self.method, self.ratio = parsed
 
     def match_dicts(self, f0: dict, f1: dict) -> dict:
         d0, d1 = np.asarray(f0["descriptors"], np.float32), np.asarray(f1["descriptors"], np.float32)

@@ -576,6 +576,23 @@ fn match_baseline(desc0: PyBackedBytes, desc1: PyBackedBytes, dim: usize, method
     Ok(baselines::match_descriptors(&f32_from_le(&desc0), &f32_from_le(&desc1), dim, m))
 }
 
+/// A baseline matcher's name parsed and checked: `nn`, `mnn`, `ratio` or `ratio:R`.
+///
+/// Args:
+///     spec: the name.
+/// Returns:
+///     `(method, ratio)` for `match_baseline` (ratio 0.8 where the method has none), or
+///     None when `spec` names no baseline.
+#[pyfunction]
+#[pyo3(signature = (spec))]
+fn parse_baseline(spec: &str) -> PyResult<Option<(&'static str, f32)>> {
+    Ok(Baseline::parse(spec).map_err(to_py_err)?.map(|b| match b {
+        Baseline::NearestNeighbour => ("nn", 0.8),
+        Baseline::MutualNearestNeighbour => ("mnn", 0.8),
+        Baseline::RatioTest { ratio } => ("ratio", ratio),
+    }))
+}
+
 /// Names accepted by `_Matcher.pretrained`.
 ///
 /// Returns:
@@ -957,6 +974,7 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(homography_corner_error, m)?,
         wrap_pyfunction!(gt_matches_from_homography, m)?,
         wrap_pyfunction!(match_baseline, m)?,
+        wrap_pyfunction!(parse_baseline, m)?,
         wrap_pyfunction!(pretrained_names, m)?,
         wrap_pyfunction!(extract, m)?,
         wrap_pyfunction!(extract_file, m)?,

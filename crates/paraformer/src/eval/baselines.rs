@@ -43,6 +43,20 @@ pub enum Baseline {
 }
 
 impl Baseline {
+    /// `nn`, `mnn`, `ratio` (Lowe's 0.8) or `ratio:R`; `None` for any other name, an error
+    /// for a ratio that is not a number in (0, 1].
+    pub fn parse(spec: &str) -> crate::Result<Option<Self>> {
+        Ok(Some(match spec {
+            "nn" => Baseline::NearestNeighbour,
+            "mnn" => Baseline::MutualNearestNeighbour,
+            "ratio" => Baseline::ratio_test(0.8)?,
+            s => match s.strip_prefix("ratio:") {
+                Some(r) => Baseline::ratio_test(r.parse().map_err(|e| crate::Error::input("matcher", format!("`{s}`: {e}")))?)?,
+                None => return Ok(None),
+            },
+        }))
+    }
+
     /// Lowe's ratio test at `ratio`: finite, above 0 and at most 1 (a best distance is never
     /// above the second best, so 1 keeps every nearest neighbour and 0 or less none).
     pub fn ratio_test(ratio: f32) -> crate::Result<Self> {
@@ -122,5 +136,18 @@ mod tests {
             let e = Baseline::ratio_test(bad).expect_err("refused").to_string();
             assert!(e.contains("ratio") && e.contains("(0, 1]"), "{bad}: {e}");
         }
+    }
+
+    #[test]
+    fn names_parse_to_baselines() {
+        let parse = |s: &str| Baseline::parse(s).expect(s);
+        assert_eq!(parse("nn"), Some(Baseline::NearestNeighbour));
+        assert_eq!(parse("mnn"), Some(Baseline::MutualNearestNeighbour));
+        assert_eq!(parse("ratio"), Some(Baseline::RatioTest { ratio: 0.8 }));
+        assert_eq!(parse("ratio:0.7"), Some(Baseline::RatioTest { ratio: 0.7 }));
+        assert_eq!(parse("nn:3"), None);
+        assert_eq!(parse("weights.safetensors"), None);
+        assert!(Baseline::parse("ratio:x").expect_err("not a number").to_string().contains("`ratio:x`"));
+        assert!(Baseline::parse("ratio:2").expect_err("above 1").to_string().contains("(0, 1]"));
     }
 }

@@ -29,13 +29,15 @@ impl MatcherSpec {
     /// `nn`, `mnn`, `ratio` (0.8) or `ratio:R`, a pretrained name
     /// ([`crate::matcher::PRETRAINED`]), or the path of a weights file.
     pub fn parse(spec: &str) -> Result<Self> {
+        if let Some(b) = Baseline::parse(spec)? {
+            let name = match b {
+                Baseline::NearestNeighbour => "NN".into(),
+                Baseline::MutualNearestNeighbour => "mutual NN".into(),
+                Baseline::RatioTest { ratio } => format!("ratio test {ratio}"),
+            };
+            return Ok(Self::Baseline(name, b));
+        }
         Ok(match spec {
-            "nn" => Self::Baseline("NN".into(), Baseline::NearestNeighbour),
-            "mnn" => Self::Baseline("mutual NN".into(), Baseline::MutualNearestNeighbour),
-            s if s == "ratio" || s.starts_with("ratio:") => {
-                let ratio = s.strip_prefix("ratio:").map_or(Ok(0.8), str::parse::<f32>).map_err(|e| Error::input("matcher", format!("`{s}`: {e}")))?;
-                Self::Baseline(format!("ratio test {ratio}"), Baseline::ratio_test(ratio)?)
-            }
             name if crate::matcher::PRETRAINED.iter().any(|p| p.0 == name) => {
                 Self::Learned(name.to_string(), Box::new(Matcher::pretrained(name)?))
             }
