@@ -163,6 +163,11 @@ def test_ground_truth_and_baselines_match_brute_force():
             g.match_baseline(d0, d1, "ratio", bad)
         with pytest.raises(ValueError, match=r"ratio.*\(0, 1\]"):
             Baseline(f"ratio:{bad}")
+    # An unknown method is named, with the core's list of names.
+    from paraformer.pipeline import BASELINES
+    assert BASELINES == ("mnn", "nn", "ratio")
+    with pytest.raises(ValueError, match=r"^method: \"lowe\": expected one of mnn, nn, ratio"):
+        g.match_baseline(d0, d1, "lowe")
     pr = g.precision_recall(g.match_baseline(d0, d1, "mnn"), np.r_[np.arange(40), [-1] * 20])
     assert pr["recall"] == 1.0 and 0 < pr["precision"] <= 1.0
     acc = g.mma(np.eye(3), x0[:5], x0[:5] + [0.0, 2.5], np.arange(5), 3)

@@ -8,10 +8,11 @@ __all__ = [
     "pretrained_names", "extract", "extract_file", "check_extract_memory", "load_image", "set_memory_limit", "memory_limit",
     "attention_forward_bf16", "attention_backward_bf16", "attention_bf16_available", "allocator",
     "amx", "set_amx", "simd",
-    "ParaformerError", "WeightsError", "ResourceError", "__version__",
+    "ParaformerError", "WeightsError", "ResourceError", "__version__", "BASELINE_NAMES",
 ]
 
 __version__: str
+BASELINE_NAMES: list[str]
 
 class ParaformerError(Exception): ...
 class WeightsError(ParaformerError): ...

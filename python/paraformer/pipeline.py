@@ -8,8 +8,10 @@ from typing import Any, Optional, Union
 import numpy as np
 
 from . import geometry as _geo
+from ._paraformer import BASELINE_NAMES
 
-BASELINES = ("mnn", "nn", "ratio")
+#: The baselines' method names, as the core parses them (``ratio`` also as ``ratio:R``).
+BASELINES = tuple(BASELINE_NAMES)
 
 
 class Baseline:

@@ -567,12 +567,7 @@ fn gt_matches_from_homography(h: Vec<f64>, kpts0: PyBackedBytes, kpts1: PyBacked
 #[pyfunction]
 #[pyo3(signature = (desc0, desc1, dim, method = "mnn", ratio = 0.8))]
 fn match_baseline(desc0: PyBackedBytes, desc1: PyBackedBytes, dim: usize, method: &str, ratio: f32) -> PyResult<Vec<i64>> {
-    let m = match method {
-        "nn" => Baseline::NearestNeighbour,
-        "mnn" => Baseline::MutualNearestNeighbour,
-        "ratio" => Baseline::ratio_test(ratio).map_err(to_py_err)?,
-        other => return Err(PyValueError::new_err(format!("method: expected nn, mnn or ratio, got {other:?}"))),
-    };
+    let m = Baseline::from_method(method, ratio).map_err(to_py_err)?;
     Ok(baselines::match_descriptors(&f32_from_le(&desc0), &f32_from_le(&desc1), dim, m))
 }
 
@@ -586,11 +581,7 @@ fn match_baseline(desc0: PyBackedBytes, desc1: PyBackedBytes, dim: usize, method
 #[pyfunction]
 #[pyo3(signature = (spec))]
 fn parse_baseline(spec: &str) -> PyResult<Option<(&'static str, f32)>> {
-    Ok(Baseline::parse(spec).map_err(to_py_err)?.map(|b| match b {
-        Baseline::NearestNeighbour => ("nn", 0.8),
-        Baseline::MutualNearestNeighbour => ("mnn", 0.8),
-        Baseline::RatioTest { ratio } => ("ratio", ratio),
-    }))
+    Ok(Baseline::parse(spec).map_err(to_py_err)?.map(|b| (b.name(), b.ratio())))
 }
 
 /// Names accepted by `_Matcher.pretrained`.
@@ -1003,5 +994,6 @@ fn _paraformer(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let _ = RESOURCE_ERROR.set(py, t.unbind());
     m.add("WeightsError", m.py().get_type::<WeightsError>())?;
     m.add("__version__", paraformer::VERSION)?;
+    m.add("BASELINE_NAMES", Baseline::NAMES.to_vec())?;
     Ok(())
 }

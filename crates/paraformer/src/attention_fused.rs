@@ -215,6 +215,7 @@ fn pack_values_bf16(v: View, heads: usize, half: usize) -> Vec<u16> {
     });
     out
 }
+
 /// Values as the fp32 kernels read them: row `j` of head `h` at `data[h·head + j·stride..][..d]`.
 #[derive(Clone, Copy)]
 pub(crate) struct HeadValues<'a> {
@@ -224,6 +225,9 @@ pub(crate) struct HeadValues<'a> {
 }
 
 impl HeadValues<'_> {
+    /// No values: what the bf16 paths pass, whose kernels read packed bf16 values instead.
+    pub(crate) const NONE: HeadValues<'static> = HeadValues { data: &[], head: 0, stride: 0 };
+
     /// Row `j` of head `h`.
     pub(crate) fn row(&self, h: usize, j: usize) -> *const f32 {
         self.data[h * self.head + j * self.stride..].as_ptr()
@@ -238,12 +242,18 @@ pub(crate) fn head_values<'a>(v: View<'a>, heads: usize, buf: &'a mut Vec<f32>) 
     if v.stride == d {
         return HeadValues { data: v.data, head: d, stride: d };
     }
-    *buf = vec![0.0; heads * n * d];
-    buf.par_chunks_mut(n * d).enumerate().for_each(|(h, out)| {
+    // Every value is written below, so the buffer is not zeroed first.
+    buf.clear();
+    buf.reserve_exact(heads * n * d);
+    buf.spare_capacity_mut()[..heads * n * d].par_chunks_mut(n * d).enumerate().for_each(|(h, out)| {
         for (j, o) in out.chunks_exact_mut(d).enumerate() {
-            o.copy_from_slice(&v.row(j)[h * d..(h + 1) * d]);
+            for (dst, &x) in o.iter_mut().zip(&v.row(j)[h * d..(h + 1) * d]) {
+                dst.write(x);
+            }
         }
     });
+    // SAFETY: the loop above initialised all `heads·n·d` values (`n` rows of `d` per head).
+    unsafe { buf.set_len(heads * n * d) };
     HeadValues { data: buf, head: n * d, stride: d }
 }
 
@@ -493,7 +503,7 @@ pub fn attention(q: View, k: View, v: View, heads: usize, col_sums: bool, bf16: 
     // Padded to `np` rows: the tile kernels read whole blocks of 32 keys.
     let v16 = if bf16 { pack_values_bf16(v, heads, pk.np / 2) } else { Vec::new() };
     let mut vbuf = Vec::new();
-    let v = if bf16 { HeadValues { data: v.data, head: 0, stride: 0 } } else { head_values(v, heads, &mut vbuf) };
+    let v = if bf16 { HeadValues::NONE } else { head_values(v, heads, &mut vbuf) };
     let d = pk.d;
     let strips = pk.mp / STRIP;
     let dst = SharedMut(out.data.as_mut_ptr());
@@ -656,8 +666,7 @@ pub fn cross_attention_shared(qx: View, ky: View, vx: View, vy: View, heads: usi
     let vy16 = if bf16 { pack_values_bf16(vy, heads, pk.np / 2) } else { Vec::new() };
     let vx16 = if bf16 { pack_values_bf16(vx, heads, m.div_ceil(2)) } else { Vec::new() };
     let (mut vxbuf, mut vybuf) = (Vec::new(), Vec::new());
-    let unused = HeadValues { data: &[], head: 0, stride: 0 };
-    let (vx, vy) = if bf16 { (unused, unused) } else { (head_values(vx, heads, &mut vxbuf), head_values(vy, heads, &mut vybuf)) };
+    let (vx, vy) = if bf16 { (HeadValues::NONE, HeadValues::NONE) } else { (head_values(vx, heads, &mut vxbuf), head_values(vy, heads, &mut vybuf)) };
     let d = pk.d;
     let split = CrossTasks::new(m);
     let chunks = split.chunks();

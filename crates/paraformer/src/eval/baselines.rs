@@ -43,18 +43,51 @@ pub enum Baseline {
 }
 
 impl Baseline {
+    /// The methods' names, as [`Baseline::from_method`] and [`Baseline::parse`] take them.
+    pub const NAMES: [&'static str; 3] = ["mnn", "nn", "ratio"];
+
+    /// Lowe's usual ratio, where `ratio` is named without one.
+    pub const DEFAULT_RATIO: f32 = 0.8;
+
+    /// The baseline `method` (one of [`Baseline::NAMES`]); `ratio` is read by `ratio` only.
+    pub fn from_method(method: &str, ratio: f32) -> crate::Result<Self> {
+        match method {
+            "nn" => Ok(Baseline::NearestNeighbour),
+            "mnn" => Ok(Baseline::MutualNearestNeighbour),
+            "ratio" => Baseline::ratio_test(ratio),
+            other => Err(crate::Error::input("method", format!("{other:?}: expected one of {}", Baseline::NAMES.join(", ")))),
+        }
+    }
+
+    /// The method's name in [`Baseline::NAMES`].
+    pub fn name(&self) -> &'static str {
+        match self {
+            Baseline::NearestNeighbour => "nn",
+            Baseline::MutualNearestNeighbour => "mnn",
+            Baseline::RatioTest { .. } => "ratio",
+        }
+    }
+
+    /// The ratio of a ratio test, [`Baseline::DEFAULT_RATIO`] for the other methods.
+    pub fn ratio(&self) -> f32 {
+        match self {
+            Baseline::RatioTest { ratio } => *ratio,
+            _ => Baseline::DEFAULT_RATIO,
+        }
+    }
+
     /// `nn`, `mnn`, `ratio` (Lowe's 0.8) or `ratio:R`; `None` for any other name, an error
     /// for a ratio that is not a number in (0, 1].
     pub fn parse(spec: &str) -> crate::Result<Option<Self>> {
-        Ok(Some(match spec {
-            "nn" => Baseline::NearestNeighbour,
-            "mnn" => Baseline::MutualNearestNeighbour,
-            "ratio" => Baseline::ratio_test(0.8)?,
-            s => match s.strip_prefix("ratio:") {
-                Some(r) => Baseline::ratio_test(r.parse().map_err(|e| crate::Error::input("matcher", format!("`{s}`: {e}")))?)?,
-                None => return Ok(None),
-            },
-        }))
+        let (method, ratio) = match spec.split_once(':') {
+            None => (spec, Baseline::DEFAULT_RATIO),
+            Some(("ratio", r)) => ("ratio", r.parse().map_err(|e| crate::Error::input("matcher", format!("`{spec}`: {e}")))?),
+            Some(_) => return Ok(None),
+        };
+        if !Baseline::NAMES.contains(&method) {
+            return Ok(None);
+        }
+        Baseline::from_method(method, ratio).map(Some)
     }
 
     /// Lowe's ratio test at `ratio`: finite, above 0 and at most 1 (a best distance is never
@@ -149,5 +182,17 @@ mod tests {
         assert_eq!(parse("weights.safetensors"), None);
         assert!(Baseline::parse("ratio:x").expect_err("not a number").to_string().contains("`ratio:x`"));
         assert!(Baseline::parse("ratio:2").expect_err("above 1").to_string().contains("(0, 1]"));
+    }
+
+    #[test]
+    fn methods_round_trip_through_their_names() {
+        for name in Baseline::NAMES {
+            let b = Baseline::from_method(name, 0.6).expect(name);
+            assert_eq!((b.name(), Baseline::parse(name).expect(name).map(|p| p.name())), (name, Some(name)));
+        }
+        assert_eq!(Baseline::from_method("ratio", 0.6).map(|b| b.ratio()).ok(), Some(0.6));
+        assert_eq!(Baseline::from_method("mnn", 0.6).map(|b| b.ratio()).ok(), Some(Baseline::DEFAULT_RATIO));
+        let e = Baseline::from_method("lowe", 0.8).expect_err("unknown").to_string();
+        assert!(e.contains("method") && e.contains("\"lowe\"") && e.contains("mnn, nn, ratio"), "{e}");
     }
 }
