@@ -164,9 +164,12 @@ def test_keypoints_far_outside_the_image(golden_weights, golden_case):
 
 def test_wrong_dtype_and_non_numeric(golden_weights, golden_case):
     m, c = paraformer.Matcher.from_file(golden_weights), golden_case
-    bad(m, c, ["kpts0", "float32 or float64", "int64"], kpts0=c["keypoints0"].astype(np.int64))
-    bad(m, c, ["desc1", "float32 or float64"], desc1=c["descriptors1"].astype(np.float16))
-    bad(m, c, ["kpts1", "float32 or float64"], kpts1=[["a", "b"]])
+    bad(m, c, ["kpts0", "float16, float32 or float64 (or integer)", "bool"], kpts0=c["keypoints0"] > 0)
+    bad(m, c, ["kpts0", "complex64"], kpts0=c["keypoints0"].astype(np.complex64))
+    # Integer descriptors are binary ones (ORB, BRIEF): named, not widened.
+    bad(m, c, ["desc1", "float16, float32 or float64 array", "uint8"], desc1=c["descriptors1"].astype(np.uint8))
+    bad(m, c, ["kpts1", "float16, float32 or float64"], kpts1=[["a", "b"]])
+    bad(m, c, ["scores0", "object"], scores0=np.array([None] * len(c["scores0"])))
     bad(m, c, ["desc0"], desc0=None)
     bad(m, c, ["kpts0"], kpts0=[[1.0, 2.0], [3.0]])  # ragged
     bad(m, c, ["scores0"], scores0="high")
@@ -175,6 +178,26 @@ def test_wrong_dtype_and_non_numeric(golden_weights, golden_case):
         m.match_dicts(feats(c, 0), {"keypoints": c["keypoints1"], "image_size": (1, 1)})
     with pytest.raises(ValueError, match=r"pairs\[1\]"):
         m.match_many([(feats(c, 0), feats(c, 1)), (feats(c, 0), {"keypoints": 1})])
+
+
+def test_half_precision_and_integer_inputs_widen(golden_weights, golden_case):
+    """float16 arrays (from a GPU extractor) and integer pixel coordinates or scores match as
+    their exact float32 values do; the results are the same arrays."""
+    m, c = paraformer.Matcher.from_file(golden_weights), golden_case
+    k0, d0, k1, d1 = (c["keypoints0"].round(), c["descriptors0"].astype(np.float16),
+                      c["keypoints1"].astype(np.float16), c["descriptors1"].astype(np.float16))
+    s0 = (c["scores0"] > np.median(c["scores0"])).astype(np.int32)
+    kw = dict(size0=c["image_size0"], size1=c["image_size1"])
+    want = m.match(k0.astype(np.float32), d0.astype(np.float32), k1.astype(np.float32), d1.astype(np.float32),
+                   scores0=s0.astype(np.float32), scores1=c["scores1"].astype(np.float16).astype(np.float32), **kw)
+    got = m.match(k0.astype(np.int64), d0, k1, d1, scores0=s0, scores1=c["scores1"].astype(np.float16), **kw)
+    for key in want:
+        np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+    f0 = {"keypoints": k0.astype(np.int16), "descriptors": d0, "image_size": c["image_size0"], "scores": s0}
+    f1 = {"keypoints": k1, "descriptors": d1, "image_size": c["image_size1"], "scores": c["scores1"].astype(np.float16)}
+    np.testing.assert_array_equal(m.match_dicts(f0, f1)["matches0"], want["matches0"])
+    # float16 overflow is an error, as any Inf is.
+    bad(m, c, ["desc0", "NaN or Inf"], desc0=np.full_like(d0, np.inf))
 
 
 def test_zero_and_one_keypoint(golden_weights, golden_case):

@@ -29,14 +29,24 @@ ArrayLike = Any
 Output = dict[str, np.ndarray]
 
 
-def _float_array(value: ArrayLike, name: str, shape: str) -> np.ndarray:
-    """``value`` as a float array, or ValueError naming ``name`` and the expected shape."""
+def _float_array(value: ArrayLike, name: str, shape: str, integers: bool = False) -> np.ndarray:
+    """``value`` as a float32 or float64 array, or ValueError naming ``name`` and the expected shape.
+
+    float16 (a GPU extractor's half precision) widens exactly to float32, and with ``integers``
+    (pixel coordinates, scores) integer arrays widen to float64; bool, complex, text and
+    objects stay errors. Descriptors take no integers: uint8 ones are binary (ORB, BRIEF).
+    """
+    kinds = "a float16, float32 or float64" + (" (or integer)" if integers else "")
     try:
         arr = np.asarray(value)
     except (ValueError, TypeError) as e:
-        raise ValueError(f"{name}: expected a float32 or float64 array of shape {shape}: {e}") from None
+        raise ValueError(f"{name}: expected {kinds} array of shape {shape}: {e}") from None
+    if arr.dtype == np.float16:
+        return arr.astype(np.float32)
+    if integers and np.issubdtype(arr.dtype, np.integer):
+        return arr.astype(np.float64)
     if arr.dtype not in (np.float32, np.float64):
-        raise ValueError(f"{name}: expected a float32 or float64 array of shape {shape}, got dtype {arr.dtype}")
+        raise ValueError(f"{name}: expected {kinds} array of shape {shape}, got dtype {arr.dtype}")
     return arr
 
 
@@ -52,7 +62,7 @@ def _le32(arr: np.ndarray) -> bytes:
 
 def _image(i: int, kpts: ArrayLike, desc: ArrayLike, scores: ArrayLike | None, size: Any, dim: int) -> tuple:
     """Validates one image's inputs and packs them for the Rust core."""
-    k = _float_array(kpts, f"kpts{i}", "[K, 2]")
+    k = _float_array(kpts, f"kpts{i}", "[K, 2]", integers=True)
     if k.ndim != 2 or k.shape[1] != 2:
         raise ValueError(f"kpts{i}: expected shape [K, 2], got {list(k.shape)}")
     n = k.shape[0]
@@ -61,7 +71,7 @@ def _image(i: int, kpts: ArrayLike, desc: ArrayLike, scores: ArrayLike | None, s
         raise ValueError(f"desc{i}: expected shape [{n}, {dim}] (K keypoints × descriptor_dim), got {list(d.shape)}")
     s = None
     if scores is not None:
-        s = _float_array(scores, f"scores{i}", f"[{n}]")
+        s = _float_array(scores, f"scores{i}", f"[{n}]", integers=True)
         if s.shape != (n,):
             raise ValueError(f"scores{i}: expected shape [{n}], got {list(s.shape)}")
     try:
@@ -207,9 +217,10 @@ class Matcher:
         """Matches the keypoints of two images.
 
         Args:
-            kpts0, kpts1: ``[M, 2]`` / ``[N, 2]`` pixel coordinates (x, y), float32 or float64,
+            kpts0, kpts1: ``[M, 2]`` / ``[N, 2]`` pixel coordinates (x, y), float or integer,
                 inside the image (at most 10% of its larger side outside).
-            desc0, desc1: ``[M, D]`` / ``[N, D]`` descriptors, ``D = config["descriptor_dim"]``.
+            desc0, desc1: ``[M, D]`` / ``[N, D]`` float descriptors (float16, 32 or 64),
+                ``D = config["descriptor_dim"]``.
             size0, size1: image sizes ``(width, height)``.
             scores0, scores1: optional ``[M]`` / ``[N]`` detection scores (default 1.0).
             return_log_assignment: also return the ``[M+1, N+1]`` log assignment.
