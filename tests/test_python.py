@@ -196,6 +196,11 @@ def test_half_precision_and_integer_inputs_widen(golden_weights, golden_case):
     f0 = {"keypoints": k0.astype(np.int16), "descriptors": d0, "image_size": c["image_size0"], "scores": s0}
     f1 = {"keypoints": k1, "descriptors": d1, "image_size": c["image_size1"], "scores": c["scores1"].astype(np.float16)}
     np.testing.assert_array_equal(m.match_dicts(f0, f1)["matches0"], want["matches0"])
+    # A tensor that cannot become an array (torch's that require grad raise RuntimeError) is named.
+    class Unconvertible:
+        def __array__(self, *args, **kwargs):
+            raise RuntimeError("Can't call numpy() on Tensor that requires grad")
+    bad(m, c, ["desc1", "requires grad"], desc1=Unconvertible())
     # float16 overflow is an error, as any Inf is.
     bad(m, c, ["desc0", "NaN or Inf"], desc0=np.full_like(d0, np.inf))
 

@@ -39,7 +39,7 @@ def _float_array(value: ArrayLike, name: str, shape: str, integers: bool = False
     kinds = "a float16, float32 or float64" + (" (or integer)" if integers else "")
     try:
         arr = np.asarray(value)
-    except (ValueError, TypeError) as e:
+    except (ValueError, TypeError, RuntimeError) as e:  # RuntimeError: a torch tensor that requires grad
         raise ValueError(f"{name}: expected {kinds} array of shape {shape}: {e}") from None
     if arr.dtype == np.float16:
         return arr.astype(np.float32)
