@@ -625,6 +625,24 @@ def test_gpu_trainee_unshares_a_shared_init(tmp_path):
         assert torch.allclose(t.ema.scores(data), small.scores(data), atol=1e-5)
 
 
+def test_gpu_trainee_keeps_its_peak_learning_rate(tmp_path):
+    """train_gpu's `--peak-lr`: a continuation at 1e-4 schedules from it (warm-up, then the
+    cosine to 10%), the state keeps it on resume, and another rate given on resume is an error."""
+    from train_gpu import Trainee
+
+    name = "paraformer-xfeat"
+    t = Trainee(name, str(tmp_path), str(tmp_path), "cpu", None, ema=0.9, peak=1e-4)
+    t.steps = 10_000
+    assert t.lr(0.3) == pytest.approx(1e-4) and t.lr(1.0) == pytest.approx(1e-5)
+    t.save()
+    assert Trainee(name, str(tmp_path), str(tmp_path), "cpu", None, ema=0.9).peak == 1e-4
+    assert Trainee(name, str(tmp_path), str(tmp_path), "cpu", None, ema=0.9, peak=1e-4).peak == 1e-4
+    with pytest.raises(SystemExit, match="trains at peak lr 0.0001; --peak-lr gives 0.0005"):
+        Trainee(name, str(tmp_path), str(tmp_path), "cpu", None, ema=0.9, peak=5e-4)
+    other = tmp_path / "default"
+    assert Trainee(name, str(other), str(other), "cpu", None, ema=0.9).peak == 5e-4
+
+
 def test_ema_warmup_forgets_the_random_init():
     """`--ema-warmup`: the decay starts at 0.1 and reaches --ema only after ~10k steps, so the
     init's share after 1,672 steps is tiny, where a fixed 0.999 keeps 19% of it."""

@@ -240,10 +240,15 @@ def training_batch(pairs: dict, sel: list[int], k_max: int, swap: np.ndarray, de
 class Trainee:
     """One model in training: weights, EMA, AdamW, counters; saved as ``<state>/<name>.pt``."""
 
-    def __init__(self, name: str, state_dir: str, snap_dir: str, device, init: str | None, ema: float):
+    def __init__(self, name: str, state_dir: str, snap_dir: str, device, init: str | None, ema: float,
+                 peak: float | None = None):
+        """``peak``: the peak learning rate in place of the model's default (``MODELS``), e.g.
+        lower for a continuation of a trained line; a state keeps its own, and another one
+        given on resume is an error."""
         self.name, self.ema_decay = name, ema
         base = name.removesuffix(LAYER_LOSS)
-        kind, dim, heads, depth, self.peak = MODELS[base]
+        kind, dim, heads, depth, default_peak = MODELS[base]
+        self.peak = default_peak if peak is None else peak
         self.args = {"preset": kind, "dim": dim, "heads": heads, "depth": depth, "sinkhorn": SINKHORN}
         if base in UNSHARED:
             self.args["unshare"] = UNSHARED[base]
@@ -271,6 +276,10 @@ class Trainee:
             self.opt.load_state_dict(st["opt"])
             self.pairs, self.steps, self.train_s = st["pairs"], st["steps"], st["train_s"]
             self.origin = st.get("origin")
+            saved = st.get("peak", default_peak)  # states from before --peak-lr ran at the default
+            if peak is not None and peak != saved:
+                raise SystemExit(f"error: {self.path} trains at peak lr {saved:g}; --peak-lr gives {peak:g}")
+            self.peak = saved
             print(f"{name}: resumed at {self.pairs} pairs, {self.train_s / 60:.1f} min", flush=True)
         else:
             self.origin = None
@@ -319,7 +328,7 @@ class Trainee:
     def save(self) -> None:
         blob = {"model": self.model.state_dict(), "ema": self.ema.state_dict(), "opt": self.opt.state_dict(),
                 "pairs": self.pairs, "steps": self.steps, "train_s": self.train_s, "args": self.args,
-                "origin": self.origin}
+                "origin": self.origin, "peak": self.peak}
         if self.heads is not None:
             blob["heads"] = self.heads.state_dict()
         torch.save(blob, self.path + ".tmp")
@@ -341,6 +350,9 @@ def main() -> None:
     ap.add_argument("--state", required=True)
     ap.add_argument("--models", nargs="+", default=["paraformer-xfeat"], choices=CHOICES)
     ap.add_argument("--init", action="append", default=[], help="NAME=CKPT: start NAME from a train.py checkpoint")
+    ap.add_argument("--peak-lr", action="append", default=[], metavar="NAME=LR",
+                    help="NAME's peak learning rate instead of its default (5e-4; 2e-4 for the large model), "
+                         "e.g. 1e-4 to continue a line trained at that rate; kept in the state")
     ap.add_argument("--minutes", type=float, required=True, help="wall-clock minutes of this call's loop")
     ap.add_argument("--total-minutes", type=float, required=True, help="training minutes of the whole run (lr schedule)")
     # The run of 2026-11-24 used 64 pairs per batch (512x64, 1024x32, 2048x16) and was host-bound
@@ -362,9 +374,18 @@ def main() -> None:
     torch.backends.cudnn.allow_tf32 = False  # XFeat's convolutions stay float32, as paraformer.extract
     os.makedirs(args.state, exist_ok=True)
     inits = dict(s.split("=", 1) for s in args.init)
+    peaks = {}
+    for s in args.peak_lr:
+        name, _, value = s.partition("=")
+        try:
+            peaks[name] = float(value)
+        except ValueError:
+            ap.error(f"--peak-lr {s!r}: expected NAME=LR with a number, e.g. paraformer-xfeat-width96=1e-4")
+        if name not in args.models or not peaks[name] > 0:
+            ap.error(f"--peak-lr {s!r}: expected one of --models ({', '.join(args.models)}) and a positive rate")
     snap_dir = args.snapshots or args.state
     os.makedirs(snap_dir, exist_ok=True)
-    trainees = [Trainee(n, args.state, snap_dir, dev, inits.get(n), args.ema) for n in args.models]
+    trainees = [Trainee(n, args.state, snap_dir, dev, inits.get(n), args.ema, peaks.get(n)) for n in args.models]
     run_path = os.path.join(args.state, "run.json")
     run = json.load(open(run_path)) if os.path.exists(run_path) else {"batches": 0, "wall_s": 0.0, "calls": []}
     gen = GpuPairs(args.photos, args.xfeat_code, args.xfeat_weights, dev, args.seed)
