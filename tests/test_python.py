@@ -340,6 +340,15 @@ def test_type_stubs_match_the_module():
     assert (Path(paraformer.__file__).parent / "py.typed").exists()
 
 
+def test_the_typed_package_type_checks():
+    """The package says it is typed (py.typed): its own annotations must hold, or users'
+    mypy runs inherit the errors. Optional extras (h5py, pycolmap, ray) may be absent."""
+    pytest.importorskip("mypy", reason="mypy not installed: the package's type check skipped")
+    r = subprocess.run([sys.executable, "-m", "mypy", "-p", "paraformer", "--ignore-missing-imports",
+                        "--no-incremental"], capture_output=True, text=True, cwd=Path(__file__).parent)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
 def test_profile_reports_parts_and_the_counted_macs(golden_weights, golden_case):
     m, c = paraformer.Matcher.from_file(golden_weights), golden_case
     p = m.profile(*args(c), **kw(c))

@@ -91,7 +91,7 @@ def _image(i: int, kpts: ArrayLike, desc: ArrayLike, scores: ArrayLike | None, s
 
 
 def _unpack(raw: dict) -> Output:
-    out = {
+    out: Output = {
         "matches0": np.frombuffer(raw["matches0"], dtype="<i8").astype(np.int64, copy=False),
         "matches1": np.frombuffer(raw["matches1"], dtype="<i8").astype(np.int64, copy=False),
         "matching_scores0": np.frombuffer(raw["matching_scores0"], dtype="<f4").astype(np.float32, copy=False),

@@ -135,7 +135,7 @@ def match_images(image0: Any, image1: Any, *, matcher: Any = "paraformer-xfeat",
         idx = np.nonzero(m0 >= 0)[0]
         matches = np.stack([idx, m0[idx]], axis=1).astype(np.int64)
         kp1 = unrotate(f1["keypoints"], k, w1, h1).astype(np.float32)
-        res = {"keypoints0": f0["keypoints"], "keypoints1": kp1, "matches": matches,
+        res: dict[str, Any] = {"keypoints0": f0["keypoints"], "keypoints1": kp1, "matches": matches,
                "scores": np.asarray(out["matching_scores0"], np.float32)[idx], "model": None,
                "inliers": None, "rotation": 90 * k}
         if geometry is not None:

@@ -120,7 +120,8 @@ def extract(image_dir: PathLike, features_path: PathLike, *, max_keypoints: int 
 
     with ThreadPoolExecutor(workers) as pool, bar(len(todo), "extract", "img", progress) as pb, \
             open_h5(features_path, "a") as fd:
-        queue, pending, failed = list(reversed(todo)), {}, []
+        queue, failed = list(reversed(todo)), []
+        pending: dict = {}
         while queue or pending:
             while queue and len(pending) < 2 * workers:
                 name = queue.pop()

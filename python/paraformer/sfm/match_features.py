@@ -42,7 +42,8 @@ class FeatureCache:
     """Reads images' features from an open h5 file, keeping the most recent ``capacity``."""
 
     def __init__(self, fd, capacity: int = 512):
-        self.fd, self.capacity, self.items = fd, capacity, OrderedDict()
+        self.fd, self.capacity = fd, capacity
+        self.items: OrderedDict[str, dict] = OrderedDict()
 
     def __call__(self, name: str) -> dict:
         if name in self.items:

@@ -169,7 +169,7 @@ def match_pairs_ray(features_path: Path, pairs: Sequence[tuple[str, str]], match
         features = {n: read_features(ffd, n) for n in names}
     ref = ray.put(features)
     del features
-    pairs = [tuple(p) for p in pairs]
+    pairs = [(a, b) for a, b in pairs]
     # In-memory items: a read task would need a CPU that the actors may all hold.
     ds = ray.data.from_items([{"index": i} for i in range(len(pairs))],
                              override_num_blocks=max(1, min(len(pairs) // batch + 1, 8 * workers)))
