@@ -201,6 +201,11 @@ def test_half_precision_and_integer_inputs_widen(golden_weights, golden_case):
         def __array__(self, *args, **kwargs):
             raise RuntimeError("Can't call numpy() on Tensor that requires grad")
     bad(m, c, ["desc1", "requires grad"], desc1=Unconvertible())
+    # float64 beyond float32's range is named by row, without a numpy warning ahead of it.
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bad(m, c, ["desc0", "row 0 is not finite"], desc0=np.where(np.arange(len(d0))[:, None] == 0, 1e300, d0.astype(np.float64)))
     # float16 overflow is an error, as any Inf is.
     bad(m, c, ["desc0", "NaN or Inf"], desc0=np.full_like(d0, np.inf))
 

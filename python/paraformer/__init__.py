@@ -57,7 +57,10 @@ def _check_finite(arr: np.ndarray, name: str) -> None:
 
 
 def _le32(arr: np.ndarray) -> bytes:
-    return np.ascontiguousarray(arr, dtype="<f4").tobytes()
+    # A float64 beyond float32's range becomes Inf, which the core then names by row: no
+    # numpy overflow warning ahead of that error.
+    with np.errstate(over="ignore"):
+        return np.ascontiguousarray(arr, dtype="<f4").tobytes()
 
 
 def _image(i: int, kpts: ArrayLike, desc: ArrayLike, scores: ArrayLike | None, size: Any, dim: int) -> tuple:
