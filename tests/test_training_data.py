@@ -641,6 +641,9 @@ def test_gpu_trainee_keeps_its_peak_learning_rate(tmp_path):
         Trainee(name, str(tmp_path), str(tmp_path), "cpu", None, ema=0.9, peak=5e-4)
     other = tmp_path / "default"
     assert Trainee(name, str(other), str(other), "cpu", None, ema=0.9).peak == 5e-4
+    # LighterGlue's size under the SPEC: one head of 96, six parallel layers.
+    big = Trainee("paraformer-xfeat-width96-h1-depth6", str(other), str(other), "cpu", None, ema=0.9)
+    assert (big.ema.config["descriptor_dim"], big.ema.config["num_heads"], len(big.ema.layers)) == (64, 1, 6)
 
 
 def test_ema_warmup_forgets_the_random_init():

@@ -56,6 +56,9 @@ MODELS = {
     # LighterGlue's layout, one head of 96: as good as 3 heads at equal pairs on the CPU (10k
     # from scratch) and ~0.85x their bf16 latency on AMX (a third of the exponentials).
     "paraformer-xfeat-width96-h1": ("paraformer", 96, 1, 4, 5e-4),
+    # LighterGlue's whole size (one head of 96, 6 layers): in bf16 on AMX tiles it costs what the
+    # 3-head 4-layer line costs (training/README, "One head of width 96").
+    "paraformer-xfeat-width96-h1-depth6": ("paraformer", 96, 1, 6, 5e-4),
     "paraformer-xfeat-unshared": ("paraformer", 64, 2, 4, 5e-4),  # separate self/cross q/k/v and merges
     "paraformer-u-xfeat": ("paraformer_u", 64, 2, 4, 5e-4),
     "paraformer-xfeat-large": ("paraformer", 256, 4, 9, 2e-4),  # the paper's width and depth
