@@ -336,3 +336,23 @@ def test_phase_resolution_of_a_linear_phase():
     out = subprocess.run([sys.executable, str(ROOT / "training" / "phase_resolution.py"), "/nonexistent/last.pt"],
                          capture_output=True, text=True)
     assert out.returncode != 0 and "/nonexistent/last.pt: no such checkpoint file" in out.stderr
+
+
+def test_curve_slope_recovers_a_known_rate(tmp_path):
+    """curve_slope.py: F1 rising 0.02 per doubling is fitted as such, the doublings to a
+    target follow from it, and a metric with too few points is said to be so."""
+    import json
+    import subprocess
+
+    slope = load(ROOT / "training" / "curve_slope.py", "curve_slope_under_test").slope
+    recs = [{"pairs": p, "val_loss@512": 1.0, "f1@2048": 0.5 + 0.02 * np.log2(p / 1000)} for p in (1000, 2000, 4000, 8000)]
+    recs[-1]["f1_real@2048"] = 0.3
+    b, now, n = slope(recs, "f1@2048")
+    assert b == pytest.approx(0.02) and now == pytest.approx(0.56) and n == 4
+    assert slope(recs, "f1_real@2048") is None
+    (tmp_path / "log.jsonl").write_text("\n".join(json.dumps(r) for r in recs) + "\n")
+    out = subprocess.run([sys.executable, str(ROOT / "training" / "curve_slope.py"), str(tmp_path),
+                          "--metric", "f1@2048", "--metric", "f1_real@2048", "--target", "f1@2048=0.6"],
+                         capture_output=True, text=True, check=True).stdout
+    assert "+0.0200 per doubling" in out and "needs 2.0 more doublings (4x the pairs)" in out
+    assert "f1_real@2048: fewer than 3 validations" in out
