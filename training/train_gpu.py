@@ -370,13 +370,7 @@ def main() -> None:
     ap.add_argument("--profile", type=int, default=0, help="profile this many batches (after 5) and print where the time goes")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = ap.parse_args()
-
-    t_start = time.time()
-    dev = torch.device(args.device)
-    torch.backends.cuda.matmul.allow_tf32 = True  # the matchers' GEMMs
-    torch.backends.cudnn.allow_tf32 = False  # XFeat's convolutions stay float32, as paraformer.extract
-    os.makedirs(args.state, exist_ok=True)
-    inits = dict(s.split("=", 1) for s in args.init)
+    # Checked before anything is set up or written: a bad rate leaves no state folder behind.
     peaks = {}
     for s in args.peak_lr:
         name, _, value = s.partition("=")
@@ -386,6 +380,13 @@ def main() -> None:
             ap.error(f"--peak-lr {s!r}: expected NAME=LR with a number, e.g. paraformer-xfeat-width96=1e-4")
         if name not in args.models or not peaks[name] > 0:
             ap.error(f"--peak-lr {s!r}: expected one of --models ({', '.join(args.models)}) and a positive rate")
+
+    t_start = time.time()
+    dev = torch.device(args.device)
+    torch.backends.cuda.matmul.allow_tf32 = True  # the matchers' GEMMs
+    torch.backends.cudnn.allow_tf32 = False  # XFeat's convolutions stay float32, as paraformer.extract
+    os.makedirs(args.state, exist_ok=True)
+    inits = dict(s.split("=", 1) for s in args.init)
     snap_dir = args.snapshots or args.state
     os.makedirs(snap_dir, exist_ok=True)
     trainees = [Trainee(n, args.state, snap_dir, dev, inits.get(n), args.ema, peaks.get(n)) for n in args.models]
