@@ -63,6 +63,10 @@ def test_extract_uint8_colour_equals_float_and_other_integers():
         b = paraformer.extract(arr, 500)
         np.testing.assert_array_equal(a["keypoints"], b["keypoints"])
         np.testing.assert_array_equal(a["descriptors"], b["descriptors"])
+    # A 16-bit copy (0–65535): XFeat's instance norm removes the scale.
+    c = paraformer.extract(img.astype(np.uint16) * 257, 500)
+    np.testing.assert_array_equal(a["keypoints"], c["keypoints"])
+    np.testing.assert_allclose(a["descriptors"], c["descriptors"], atol=1e-5)
 
 
 def test_native_extract_rejects_an_unknown_pixel_type():

@@ -313,8 +313,9 @@ def extract(image: Union[str, os.PathLike, ArrayLike], max_keypoints: int = 2048
 
     Args:
         image: a path (PNG, JPEG, PNM, BMP, TIFF, WebP) or a numpy array ``[H, W]`` or
-            ``[H, W, C]`` (C = 1, 2, 3 or 4; uint8 0–255 or float 0–255; colour is averaged
-            over R, G, B, alpha ignored).
+            ``[H, W, C]`` (C = 1, 2, 3 or 4; uint8 0–255, float 0–255 or a wider integer
+            type such as uint16, which gives the keypoints of its 8-bit version because XFeat
+            normalises contrast; colour is averaged over R, G, B, alpha ignored).
         max_keypoints: keep at most this many keypoints, best score first.
         subpixel: refine each keypoint to sub-pixel precision (a Gaussian fit of XFeat's
             heatmap across its peak, within ±0.5 px; descriptors sampled there). Off:
@@ -330,7 +331,8 @@ def extract(image: Union[str, os.PathLike, ArrayLike], max_keypoints: int = 2048
     else:
         arr = np.asarray(image)
         if arr.dtype == np.bool_ or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
-            raise ValueError(f"image: expected a uint8 or float array [H, W] or [H, W, C], got dtype {arr.dtype}")
+            raise ValueError(f"image: expected an integer or float array [H, W] or [H, W, C] "
+                             f"(uint8 0–255 is the usual), got dtype {arr.dtype}")
         if arr.ndim == 2:
             arr = arr[:, :, None]
         if arr.ndim != 3 or arr.shape[2] not in (1, 2, 3, 4):
