@@ -14,6 +14,10 @@ headline numbers.
 
     python scripts/evaluate_sfm.py --out eval_results/sfm_strecha_entry-P10.json \
         --picture eval_results/sfm_strecha_entry-P10.png
+
+A matcher entry may carry ``@THRESHOLD[:ITERATIONS]`` (``paraformer-xfeat@0.7``,
+``w.safetensors@0.5:25``): the same weights with ``match_threshold`` (and
+``sinkhorn_iterations``) overridden in memory.
 """
 from __future__ import annotations
 
@@ -221,11 +225,58 @@ def markdown(results: dict) -> str:
     return head + "\n".join(lines) + "\n"
 
 
+def matcher_entry(entry: str) -> tuple[str, dict]:
+    """``SOURCE[@THRESHOLD[:ITERATIONS]]`` → (source, config overrides); a clean exit that
+    names the entry when the setting does not parse or is out of range."""
+    source, _, setting = entry.partition("@")
+    if not source:
+        raise SystemExit(f"error: --matchers entry {entry!r}: expected NAME_OR_FILE[@THRESHOLD[:ITERATIONS]]")
+    if not setting:
+        return source, {}
+    thr, _, iters = setting.partition(":")
+    try:
+        override: dict = {"match_threshold": float(thr)}
+        if iters:
+            override["sinkhorn_iterations"] = int(iters)
+    except ValueError:
+        raise SystemExit(f"error: --matchers entry {entry!r}: threshold {thr!r} must be a number "
+                         f"and iterations {iters!r} an integer") from None
+    if not 0.0 <= override["match_threshold"] <= 1.0 or override.get("sinkhorn_iterations", 1) < 1:
+        raise SystemExit(f"error: --matchers entry {entry!r}: expected a threshold in [0, 1] "
+                         "and at least 1 iteration")
+    return source, override
+
+
+def load_entry(entry: str):
+    """The matcher ``sfm.reconstruct`` gets for an entry: the plain name or file when there is
+    no override, else a ``paraformer.Matcher`` of the same weights (a shipped name reads the
+    repository's copy of its file) with the overrides applied."""
+    import paraformer
+
+    from paraformer.pipeline import load_matcher
+
+    source, override = matcher_entry(entry)
+    if not override:
+        try:
+            load_matcher(source)  # a typo fails here, before any reconstruction ran
+        except ValueError as e:
+            raise SystemExit(f"error: --matchers entry {entry!r}: {e}") from None
+        return source
+    shipped = ROOT / "crates" / "paraformer" / "weights" / f"{source}.safetensors"
+    path = shipped if source in paraformer.pretrained_names() else Path(source)
+    if not path.is_file():
+        raise SystemExit(f"error: --matchers entry {entry!r}: @THRESHOLD needs a shipped name or a weights "
+                         f"file, and {str(path)!r} is neither")
+    base = paraformer.Matcher.from_file(path)
+    return paraformer.Matcher(dict(base.config, **override), path)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", type=Path, default=STRECHA, help="folder with images/ and gt_dense_cameras/")
     ap.add_argument("--matchers", default="paraformer-xfeat,paraformer-u-xfeat,mnn",
-                    help="comma-separated shipped names, baselines or weights files")
+                    help="comma-separated shipped names, baselines or weights files, each with an optional "
+                         "@THRESHOLD[:ITERATIONS] override")
     ap.add_argument("--max-keypoints", type=int, default=4096, help="as reconstruct's default")
     ap.add_argument("--no-colmap-sift", action="store_true", help="skip COLMAP's SIFT reference")
     ap.add_argument("--seeds", type=int, default=5,
@@ -238,6 +289,7 @@ def main() -> None:
     ap.add_argument("--picture", type=Path, default=None, help="PNG: top view of the first matcher's model")
     a = ap.parse_args()
 
+    entries = [(name, load_entry(name)) for name in a.matchers.split(",")]  # bad entries fail before any work
     import pycolmap
 
     from paraformer import sfm
@@ -248,15 +300,15 @@ def main() -> None:
     results["seeds"] = a.seeds
     results["subpixel"] = a.subpixel
     with tempfile.TemporaryDirectory() as tmp:
-        for i, name in enumerate(a.matchers.split(",")):
-            out = Path(tmp) / f"{i}_{Path(name).stem}"  # names may be weights files anywhere
+        for i, (name, matcher) in enumerate(entries):
+            out = Path(tmp) / f"{i}_{Path(matcher_entry(name)[0]).stem}"  # names may be weights files anywhere
             rows = []
             for seed in range(a.seeds):
                 # Features and matches come from the first run; later seeds redo the
                 # randomised stages (verification, mapping) on the same files.
                 run = out if seed == 0 else out.with_name(f"{out.name}_seed{seed}")
                 if seed == 0:
-                    sfm.reconstruct(a.scene / "images", out, matcher=name, max_keypoints=a.max_keypoints,
+                    sfm.reconstruct(a.scene / "images", out, matcher=matcher, max_keypoints=a.max_keypoints,
                                     subpixel=a.subpixel, seed=0, progress=False)
                 else:
                     sfm.reconstruct_from_files(a.scene / "images", run, out / "features.h5", out / "pairs.txt",

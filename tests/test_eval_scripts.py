@@ -356,3 +356,28 @@ def test_curve_slope_recovers_a_known_rate(tmp_path):
                          capture_output=True, text=True, check=True).stdout
     assert "+0.0200 per doubling" in out and "needs 2.0 more doublings (4x the pairs)" in out
     assert "f1_real@2048: fewer than 3 validations" in out
+
+
+def test_sfm_matcher_entries_with_threshold_overrides(tmp_path):
+    """evaluate_sfm.py's ``SOURCE[@THRESHOLD[:ITERATIONS]]`` entries: the override reaches the
+    matcher's config, a plain entry stays a name, and each bad entry is a clean exit naming it."""
+    import paraformer
+
+    ev = load(ROOT / "scripts" / "evaluate_sfm.py", "evaluate_sfm_entries_under_test")
+    assert ev.matcher_entry("paraformer-xfeat") == ("paraformer-xfeat", {})
+    assert ev.matcher_entry("w.safetensors@0.7:25") == ("w.safetensors", {"match_threshold": 0.7,
+                                                                          "sinkhorn_iterations": 25})
+    assert ev.load_entry("mnn") == "mnn" and ev.load_entry("paraformer-xfeat") == "paraformer-xfeat"
+    m = ev.load_entry("paraformer-xfeat@0.75")  # 0.75 and 0.25: exact in the config's f32
+    base = paraformer.Matcher.pretrained("paraformer-xfeat").config
+    assert isinstance(m, paraformer.Matcher) and m.config == dict(base, match_threshold=0.75)
+    weights = tmp_path / "copy.safetensors"  # a weights file elsewhere, with iterations as well
+    weights.write_bytes((ROOT / "crates" / "paraformer" / "weights" / "paraformer-xfeat.safetensors").read_bytes())
+    assert ev.load_entry(f"{weights}@0.25:7").config == dict(base, match_threshold=0.25, sinkhorn_iterations=7)
+    for bad, says in [("paraformer-xfeat@high", "must be a number"), ("paraformer-xfeat@0.5:x", "an integer"),
+                      ("paraformer-xfeat@1.5", "in [0, 1]"), ("paraformer-xfeat@0.5:0", "at least 1 iteration"),
+                      ("@0.5", "expected NAME_OR_FILE"), ("mnn@0.5", "neither"),
+                      (f"{tmp_path / 'missing.safetensors'}@0.5", "neither"), ("paraformer-xfaet", "not a pretrained name")]:
+        with pytest.raises(SystemExit, match=re.escape(says)) as e:
+            ev.load_entry(bad)
+        assert repr(bad) in str(e.value)

@@ -51,6 +51,9 @@ def test_match_images_bad_input():
         paraformer.match_images(img, img, matcher="lightglue")
     with pytest.raises(ValueError, match="image1"):
         paraformer.match_images(img, np.zeros((4, 4, 4, 4)))
+    for bad in (np.zeros((64, 64), bool), np.zeros((64, 64), np.complex64), np.full((64, 64), "x")):
+        with pytest.raises(ValueError, match=f"image0: expected a path or an integer or float array .* got dtype {bad.dtype}"):
+            paraformer.match_images(bad, img)
     with pytest.raises(FileNotFoundError):
         paraformer.match_images(img, SAMPLE / "missing.jpg")
 

@@ -69,7 +69,7 @@ def load_image(image: Union[str, os.PathLike, np.ndarray], name: str) -> np.ndar
         return np.frombuffer(data, "<f4").reshape(h, w).astype(np.float32)
     arr = np.asarray(image)
     if arr.dtype == np.bool_ or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
-        raise ValueError(f"{name}: expected a path or a uint8/float array [H, W] or [H, W, C], got dtype {arr.dtype}")
+        raise ValueError(f"{name}: expected a path or an integer or float array [H, W] or [H, W, C], got dtype {arr.dtype}")
     if arr.ndim == 3 and arr.shape[2] in (1, 2, 3, 4):
         c = arr.shape[2]
         arr = arr[:, :, :1] if c <= 2 else arr[:, :, :3]
@@ -101,7 +101,8 @@ def match_images(image0: Any, image1: Any, *, matcher: Any = "paraformer-xfeat",
     geometry) is kept; everything is returned in image1's original frame.
 
     Args:
-        image0, image1: paths or arrays (``[H, W]`` or ``[H, W, C]``, uint8 or float 0–255).
+        image0, image1: paths or arrays (``[H, W]`` or ``[H, W, C]``, uint8, another
+            integer type, or float 0–255).
         matcher: a shipped name, ``mnn``/``nn``/``ratio[:R]``, a weights file or a ``Matcher``.
         max_keypoints: XFeat keypoints per image.
         geometry: ``"homography"``, ``"fundamental"`` or None (no RANSAC).
