@@ -231,7 +231,9 @@ def markdown(results: dict) -> str:
 def matcher_entry(entry: str) -> tuple[str, dict]:
     """``SOURCE[@THRESHOLD[:ITERATIONS]]`` → (source, config overrides); a clean exit that
     names the entry when the setting does not parse or is out of range."""
-    source, _, setting = entry.partition("@")
+    if Path(entry).is_file():  # a weights file whose name holds "@"
+        return entry, {}
+    source, _, setting = entry.rpartition("@") if "@" in entry else (entry, "", "")
     if not source:
         raise SystemExit(f"error: --matchers entry {entry!r}: expected NAME_OR_FILE[@THRESHOLD[:ITERATIONS]]")
     if not setting:
@@ -281,7 +283,6 @@ def load_entry(entry: str):
     no override, else a ``paraformer.Matcher`` of the same weights (a shipped name reads the
     repository's copy of its file) with the overrides applied."""
     import paraformer
-
     from paraformer.pipeline import load_matcher
 
     source, override = matcher_entry(entry)

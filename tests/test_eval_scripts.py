@@ -376,6 +376,9 @@ def test_sfm_matcher_entries_with_threshold_overrides(tmp_path):
     weights = tmp_path / "copy.safetensors"  # a weights file elsewhere, with iterations as well
     weights.write_bytes((ROOT / "crates" / "paraformer" / "weights" / "paraformer-xfeat.safetensors").read_bytes())
     assert ev.load_entry(f"{weights}@0.25:7").config == dict(base, match_threshold=0.25, sinkhorn_iterations=7)
+    odd = tmp_path / "w@2.safetensors"  # an "@" in the file's own name
+    odd.write_bytes(weights.read_bytes())
+    assert ev.load_entry(str(odd)) == str(odd) and ev.load_entry(f"{odd}@0.25").config["match_threshold"] == 0.25
     for bad, says in [("paraformer-xfeat@high", "must be a number"), ("paraformer-xfeat@0.5:x", "an integer"),
                       ("paraformer-xfeat@1.5", "in [0, 1]"), ("paraformer-xfeat@0.5:0", "at least 1 iteration"),
                       ("@0.5", "expected NAME_OR_FILE"), ("mnn@0.5", "neither"), ("lighterglue@0.5", "neither"),
