@@ -1097,32 +1097,39 @@ def test_blind_descriptors_replace_a_share_of_descriptors_and_nothing_else():
         stream.blind_descriptors(bt, 1.5, np.random.default_rng(1))
 
 
-def test_hint_loss_is_zero_at_the_teachers_features_and_names_a_mismatch():
-    """`train.py --hint`: 1 − cosine between adapted student features and the teacher layer each
-    student layer is paired with; 0 when they point the same way at any scale, near 1 for
-    unrelated features, falling along its own gradient; mismatched shapes or counts are refused."""
-    from paraformer_train.teacher import hint_loss
+def test_hint_loss_is_one_minus_r2_against_the_teachers_features_and_names_a_mismatch():
+    """`train.py --hint`: squared error between adapted student features and the standardized
+    features of the teacher layer each student layer is paired with; 0 when they reproduce the
+    teacher's up to each channel's mean and scale, ~1 for unrelated features or a constant,
+    blind to a direction common to all keypoints, falling along its own gradient; mismatched
+    shapes or counts are refused."""
+    from paraformer_train.teacher import hint_loss, standardize
 
     torch.manual_seed(0)
     teacher = [(torch.randn(2, 30, 96), torch.randn(2, 25, 96)) for _ in range(6)]
     pick = [1, 2, 4, 5]
-    same = [(3.0 * teacher[t][0], 0.5 * teacher[t][1]) for t in pick]
+    exact = [standardize(*teacher[t]) for t in pick]
     ident = [torch.nn.Identity() for _ in pick]
-    assert hint_loss(same, ident, teacher, pick).item() < 1e-6
+    assert hint_loss(exact, ident, teacher, pick).item() < 1e-6
     other = [(torch.randn(2, 30, 96), torch.randn(2, 25, 96)) for _ in pick]
-    assert 0.8 < hint_loss(other, ident, teacher, pick).item() < 1.2
+    assert 1.6 < hint_loss(other, ident, teacher, pick).item() < 2.4  # unrelated unit-variance: 1 + 1
+    zero = [(torch.zeros(2, 30, 96), torch.zeros(2, 25, 96)) for _ in pick]
+    assert abs(hint_loss(zero, ident, teacher, pick).item() - 1) < 0.05
+    # A large offset shared by every keypoint (most of a trained net's norm) changes nothing.
+    shifted = [(a + 50.0, b + 50.0) for a, b in teacher]
+    assert hint_loss(exact, ident, shifted, pick).item() < 1e-5
     maps = [torch.nn.Linear(96, 96) for _ in pick]
     before = hint_loss(other, maps, teacher, pick)
     before.backward()
     with torch.no_grad():
         for m in maps:
-            m.weight -= 50.0 * m.weight.grad
-            m.bias -= 50.0 * m.bias.grad
+            m.weight -= 2.0 * m.weight.grad
+            m.bias -= 2.0 * m.bias.grad
     assert hint_loss(other, maps, teacher, pick).item() < before.item()
     with pytest.raises(ValueError, match=r"\(2, 29, 96\).*\(2, 30, 96\)"):
         hint_loss([(torch.randn(2, 29, 96), torch.randn(2, 25, 96))] * 4, ident, teacher, pick)
     with pytest.raises(ValueError, match="3 student layers, 4 adapters, 4 teacher layers"):
-        hint_loss(same[:3], ident, teacher, pick)
+        hint_loss(exact[:3], ident, teacher, pick)
 
 
 def test_hint_adapters_pair_student_layers_with_the_teachers_depth():
@@ -1133,6 +1140,18 @@ def test_hint_adapters_pair_student_layers_with_the_teachers_depth():
         m = Matcher({"descriptor_dim": 64, "dim": 96, "num_heads": 3, "num_layers": depth})
         a = HintAdapters(m)
         assert a.pick == pick and len(a.maps) == depth and a.maps[0].in_features == 96
+    # fit: least-squares maps from one batch; student features that are an affine image of the
+    # teacher's picked layers are mapped back onto them (the hint loss of a fitted --init start).
+    from paraformer_train.teacher import hint_loss
+
+    torch.manual_seed(1)
+    a = HintAdapters(Matcher({"descriptor_dim": 64, "dim": 96, "num_heads": 3, "num_layers": 4}))
+    teacher = [(torch.randn(2, 40, 96), torch.randn(2, 35, 96)) for _ in range(6)]
+    mix = torch.randn(96, 96)
+    student = [(teacher[t][0] @ mix + 0.3, teacher[t][1] @ mix + 0.3) for t in a.pick]
+    assert hint_loss(student, a.maps, teacher, a.pick).item() > 0.5
+    a.fit(student, teacher, ridge=1e-8)
+    assert hint_loss(student, a.maps, teacher, a.pick).item() < 1e-4
 
 
 def test_teacher_keeps_each_layers_features_for_hints():
@@ -1157,6 +1176,25 @@ def test_teacher_keeps_each_layers_features_for_hints():
     assert torch.allclose(logp[:, :-1, :-1].exp(), p, atol=1e-5)
     hinted(bt)
     assert len(hinted.hidden()) == 6  # each call replaces the last call's features
+
+
+def test_teacher_feature_probe_scores_held_out_r2_and_refuses_what_it_cannot_probe(tmp_path):
+    """teacher_feature_probe.py: R² on held-out rows is ~1 for an affine relation, ~0 for
+    unrelated features (never the in-sample fit's optimism), and a file that is not a
+    ParaFormer training checkpoint is refused by name."""
+    import teacher_feature_probe as probe
+
+    torch.manual_seed(0)
+    x = torch.randn(4000, 96)
+    assert probe.held_out_r2(x, x @ torch.randn(96, 96) + 2.0, ridge=1e-8) > 0.999
+    assert -0.1 < probe.held_out_r2(x, torch.randn(4000, 96)) < 0.01  # in-sample it would be ~ +0.05
+    signal = x @ (torch.randn(96, 96) / 96 ** 0.5)  # unit variance per channel, as the noise
+    assert 0.4 < probe.held_out_r2(x, signal + torch.randn(4000, 96)) < 0.6
+    with pytest.raises(SystemExit, match="not found"):
+        probe.load_checkpoint(str(tmp_path / "none.pt"), "ema")
+    torch.save({"weights": 1}, tmp_path / "other.pt")
+    with pytest.raises(SystemExit, match="not a train.py checkpoint with 'ema' weights"):
+        probe.load_checkpoint(str(tmp_path / "other.pt"), "ema")
 
 
 @pytest.mark.parametrize("args, message", [

@@ -34,7 +34,7 @@ from torch import nn
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paraformer_train import data, model as model_mod, stream  # noqa: E402
 from paraformer_train.io import save_safetensors  # noqa: E402
-from paraformer_train.teacher import LighterGlueTeacher, distillation_loss, hint_loss  # noqa: E402
+from paraformer_train.teacher import LighterGlueTeacher, distillation_loss, hint_loss, standardize  # noqa: E402
 from paraformer_train.model import (Matcher, extract_matches, log_optimal_transport,  # noqa: E402
                                     log_optimal_transport_last_grad, pair_scores)
 
@@ -308,6 +308,20 @@ class HintAdapters(nn.Module):
         self.pick = [math.ceil((k + 1) * self.TEACHER_LAYERS / n) - 1 for k in range(n)]
         self.maps = nn.ModuleList([nn.Linear(c, self.TEACHER_DIM) for _ in range(n)])
 
+    @torch.no_grad()
+    def fit(self, student: list[tuple[torch.Tensor, torch.Tensor]], teacher: list[tuple[torch.Tensor, torch.Tensor]],
+            ridge: float = 1e-3) -> None:
+        """Least-squares maps from one batch's student features to the teacher's picked layers:
+        a start for --init runs, whose trained features random maps would first pull about."""
+        for (x, y), m, t in zip(student, self.maps, self.pick):
+            a = torch.cat([x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])]).float()
+            b = torch.cat([u.reshape(-1, self.TEACHER_DIM) for u in standardize(*teacher[t])])
+            a1 = torch.cat([a, torch.ones(len(a), 1)], 1)
+            gram = a1.T @ a1 + ridge * len(a) * torch.eye(a1.shape[1])
+            w = torch.linalg.solve(gram, a1.T @ b)  # [C + 1, 96]
+            m.weight.copy_(w[:-1].T)
+            m.bias.copy_(w[-1])
+
 
 def log_assignments(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
                     bf16: bool = False, states: list | None = None) -> list[torch.Tensor]:
@@ -547,9 +561,10 @@ def main() -> None:
                          "LighterGlue's soft assignment on the same features (paraformer_train/teacher.py; ~0.1 s "
                          "per pair on 2 cores); 0 trains on the labels alone; a run may switch it at a resume")
     ap.add_argument("--hint", type=float, default=0.0, metavar="BETA",
-                    help="weight of a feature-hint term added to the loss: BETA x (1 - cosine) between each student "
-                         "layer's features (through a training-only linear map) and LighterGlue's at the same relative "
-                         "depth on the same features (train.py HintAdapters); needs --preset paraformer; 0: off")
+                    help="weight of a feature-hint term added to the loss: BETA x the squared error between each "
+                         "student layer's features (through a training-only linear map) and LighterGlue's at the same "
+                         "relative depth on the same features, standardized per channel (1 - R^2; train.py "
+                         "HintAdapters, paraformer_train/teacher.py hint_loss); needs --preset paraformer; 0: off")
     ap.add_argument("--teacher-bf16", action="store_true",
                     help="run the --distill teacher under bfloat16 autocast: 1.6-2x faster alone (bench_teacher.py), "
                          "less inside the trainer; rows within 0.02-0.05 total variation of the float32 "
@@ -662,6 +677,7 @@ def main() -> None:
     if args.hint > 0 and args.preset != "paraformer":
         sys.exit("error: --hint needs --preset paraformer (per-layer features)")
     adapters = HintAdapters(model) if args.hint > 0 else None
+    fit_adapters = adapters is not None and state is None and bool(args.init)  # on the first batch
     params = (list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
               + (list(adapters.parameters()) if adapters is not None else []))
     groups = [{"params": params, "lr_scale": 1.0}]
@@ -783,6 +799,9 @@ def main() -> None:
                 else:
                     loss = sum(losses) / len(losses)
                 if adapters is not None:
+                    if fit_adapters:
+                        adapters.fit(states, teacher.hidden())
+                        fit_adapters = False
                     hint = hint_loss(states, adapters.maps, teacher.hidden(), adapters.pick)
                     running_hint.append(hint.item())
                     loss = loss + args.hint * hint
