@@ -27,7 +27,7 @@ sys.path.insert(0, HERE)
 import train  # noqa: E402
 from paraformer_train import stream  # noqa: E402
 from paraformer_train.model import Matcher  # noqa: E402
-from paraformer_train.teacher import LighterGlueTeacher  # noqa: E402
+from paraformer_train.teacher import LighterGlueTeacher, ridge_map  # noqa: E402
 
 
 def load_checkpoint(path: str, weights: str) -> Matcher:
@@ -63,10 +63,8 @@ def collect(model: Matcher, teacher: LighterGlueTeacher, pairs: list, keypoints:
 def held_out_r2(source: torch.Tensor, target: torch.Tensor, ridge: float = 1e-3) -> float:
     """R² on the second half of the rows of a ridge map (with bias) fitted on the first half."""
     half = len(source) // 2
-    a = torch.cat([source, torch.ones(len(source), 1)], 1)
-    gram = a[:half].T @ a[:half] + ridge * half * torch.eye(a.shape[1])
-    w = torch.linalg.solve(gram, a[:half].T @ target[:half])
-    resid = ((a[half:] @ w - target[half:]) ** 2).sum()
+    w = ridge_map(source[:half], target[:half], ridge)
+    resid = ((source[half:] @ w[:-1] + w[-1] - target[half:]) ** 2).sum()
     total = ((target[half:] - target[half:].mean(0)) ** 2).sum()
     return float(1 - resid / total)
 
@@ -85,6 +83,8 @@ def main() -> None:
         label, sep, path = entry.partition("=")
         if not sep or not label or not path:
             ap.error(f"--checkpoint {entry!r}: expected LABEL=PATH")
+        if not os.path.isfile(path):
+            ap.error(f"--checkpoint {entry!r}: {path} not found")
         entries.append((label, path))
     if args.pairs < 2 or args.keypoints < 8:
         ap.error(f"--pairs {args.pairs} / --keypoints {args.keypoints}: expected at least 2 pairs and 8 keypoints")

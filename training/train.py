@@ -34,7 +34,7 @@ from torch import nn
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paraformer_train import data, model as model_mod, stream  # noqa: E402
 from paraformer_train.io import save_safetensors  # noqa: E402
-from paraformer_train.teacher import LighterGlueTeacher, distillation_loss, hint_loss, standardize  # noqa: E402
+from paraformer_train.teacher import LighterGlueTeacher, distillation_loss, hint_loss, ridge_map, standardize  # noqa: E402
 from paraformer_train.model import (Matcher, extract_matches, log_optimal_transport,  # noqa: E402
                                     log_optimal_transport_last_grad, pair_scores)
 
@@ -316,9 +316,7 @@ class HintAdapters(nn.Module):
         for (x, y), m, t in zip(student, self.maps, self.pick):
             a = torch.cat([x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])]).float()
             b = torch.cat([u.reshape(-1, self.TEACHER_DIM) for u in standardize(*teacher[t])])
-            a1 = torch.cat([a, torch.ones(len(a), 1)], 1)
-            gram = a1.T @ a1 + ridge * len(a) * torch.eye(a1.shape[1])
-            w = torch.linalg.solve(gram, a1.T @ b)  # [C + 1, 96]
+            w = ridge_map(a, b, ridge)  # [C + 1, 96]
             m.weight.copy_(w[:-1].T)
             m.bias.copy_(w[-1])
 

@@ -122,6 +122,14 @@ def standardize(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return (a - mean) / std, (b - mean) / std
 
 
+def ridge_map(source: torch.Tensor, target: torch.Tensor, ridge: float = 1e-3) -> torch.Tensor:
+    """Least-squares affine map from rows of ``source`` [K, C] to rows of ``target`` [K, D], with
+    a ridge of ``ridge`` × K on the diagonal: ``[C + 1, D]``, the bias in the last row."""
+    a = torch.cat([source, torch.ones(len(source), 1, dtype=source.dtype)], 1)
+    gram = a.T @ a + ridge * len(a) * torch.eye(a.shape[1], dtype=source.dtype)
+    return torch.linalg.solve(gram, a.T @ target)
+
+
 def hint_loss(student: list[tuple[torch.Tensor, torch.Tensor]], adapters, teacher: list[tuple[torch.Tensor, torch.Tensor]],
               pick: list[int]) -> torch.Tensor:
     """Mean squared error between each student layer's features, through its adapter, and the
