@@ -744,7 +744,7 @@ def main() -> None:
         try:
             teacher = LighterGlueTeacher(bf16=args.teacher_bf16, hidden=args.hint > 0)
         except RuntimeError as e:
-            sys.exit(f"error: --distill: {e}")
+            sys.exit(f"error: {'--distill' if args.distill > 0 else '--hint'}: {e}")
     sinkhorn = log_optimal_transport_last_grad if args.sinkhorn_grad == "last" else log_optimal_transport
     log = open(os.path.join(args.run, "log.jsonl"), "a")
     stop = {"now": False}
@@ -790,21 +790,20 @@ def main() -> None:
                 t0 = time.time()
                 target = teacher(bt)
                 teacher_s += time.time() - t0
-                if args.distill > 0:
-                    kls = [distillation_loss(logp, target) for logp in logps]
-                    running_kl.append(kls[-1].item())
-                    loss = sum((1 - args.distill) * n + args.distill * k for n, k in zip(losses, kls)) / len(losses)
-                else:
-                    loss = sum(losses) / len(losses)
-                if adapters is not None:
-                    if fit_adapters:
-                        adapters.fit(states, teacher.hidden())
-                        fit_adapters = False
-                    hint = hint_loss(states, adapters.maps, teacher.hidden(), adapters.pick)
-                    running_hint.append(hint.item())
-                    loss = loss + args.hint * hint
+            if args.distill > 0:
+                kls = [distillation_loss(logp, target) for logp in logps]
+                running_kl.append(kls[-1].item())
+                loss = sum((1 - args.distill) * n + args.distill * k for n, k in zip(losses, kls)) / len(losses)
             else:
                 loss = sum(losses) / len(losses)
+            if adapters is not None:
+                features = teacher.hidden()
+                if fit_adapters:
+                    adapters.fit(states, features)
+                    fit_adapters = False
+                hint = hint_loss(states, adapters.maps, features, adapters.pick)
+                running_hint.append(hint.item())
+                loss = loss + args.hint * hint
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(params, 1.0)
