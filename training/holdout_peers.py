@@ -205,9 +205,8 @@ def checkpoint_matcher(path: str, threshold: float):
     """Matches of a train.py checkpoint's EMA weights (the validation's log assignment and
     mutual-best extraction) as a function of two feature dicts."""
     import torch
-    from train import build_model, model_config
-    from paraformer_train.lightglue_arm import is_arm
-    from paraformer_train.model import extract_matches, log_optimal_transport_last_grad
+    from train import build_model, final_log_assignment, model_config
+    from paraformer_train.model import extract_matches
 
     state = torch.load(path, map_location="cpu", weights_only=False)
     saved = state["args"]
@@ -222,9 +221,7 @@ def checkpoint_matcher(path: str, threshold: float):
             bt[f"scores{i}"] = torch.from_numpy(f["scores"])[None]
             bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
             bt[f"image_size{i}"] = torch.from_numpy(np.asarray(f["image_size"], np.float32))[None]
-        logp = (model.assignments(bt)[-1] if is_arm(model) else
-                log_optimal_transport_last_grad(model.scores(bt), model.bin_score, model.config["sinkhorn_iterations"]))
-        return extract_matches(logp, threshold)["matches0"][0].numpy()
+        return extract_matches(final_log_assignment(model, bt), threshold)["matches0"][0].numpy()
 
     return match
 

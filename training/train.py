@@ -355,6 +355,15 @@ def log_assignments(model: Matcher | LightGlueArm, heads: LayerHeads | None, bt:
     return [sinkhorn(s.float(), b, iters) for s, b in scores]
 
 
+def final_log_assignment(model: Matcher | LightGlueArm, bt: dict) -> torch.Tensor:
+    """The model's own log assignment, as its users get it: the arm's last head, or SPEC §8
+    Sinkhorn at the config's iterations (the value of ``log_optimal_transport``, far faster at
+    2048 keypoints in the scaling domain)."""
+    if is_arm(model):
+        return model.assignments(bt)[-1]
+    return log_optimal_transport_last_grad(model.scores(bt), model.bin_score, model.config["sinkhorn_iterations"])
+
+
 def matching_losses(model: Matcher, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
                     bf16: bool = False, counts: tuple[int, int] | None = None) -> list[torch.Tensor]:
     """The assignment NLL of ``log_assignments``' layers. ``counts``: see ``nll_loss`` (a
@@ -445,10 +454,7 @@ def validate(model: Matcher, shards: list[stream.Shard], keypoints: int, thresho
     for shard in shards:
         for i in range(len(shard)):
             bt = stream.collate([(shard, i)], keypoints, [False])
-            # Same value as log_optimal_transport, far faster at 2048 keypoints (scaling domain).
-            logp = (model.assignments(bt)[-1] if is_arm(model) else
-                    log_optimal_transport_last_grad(model.scores(bt), model.bin_score,
-                                                    model.config["sinkhorn_iterations"]))
+            logp = final_log_assignment(model, bt)
             pred = extract_matches(logp, threshold)["matches0"]
             s = sums[int(shard.kind[i])]
             s[0] += nll_loss(logp, bt["gt0"], bt["gt1"]).item()
