@@ -205,23 +205,18 @@ def checkpoint_matcher(path: str, threshold: float):
     """Matches of a train.py checkpoint's EMA weights (the validation's log assignment and
     mutual-best extraction) as a function of two feature dicts."""
     import torch
-    from train import build_model, final_log_assignment, model_config
+    from train import final_log_assignment
+    from validate_snapshots import Matcher_from_args
     from paraformer_train.model import extract_matches
+    from paraformer_train.teacher import features_batch
 
     state = torch.load(path, map_location="cpu", weights_only=False)
-    saved = state["args"]
-    model = build_model(model_config(saved), saved.get("self_rotary")).eval()
+    model = Matcher_from_args(state["args"]).eval()
     model.load_state_dict(state.get("ema", state["model"]))
 
     @torch.no_grad()
     def match(f0: dict, f1: dict) -> np.ndarray:
-        bt = {}
-        for i, f in ((0, f0), (1, f1)):
-            bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None]
-            bt[f"scores{i}"] = torch.from_numpy(f["scores"])[None]
-            bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None]
-            bt[f"image_size{i}"] = torch.from_numpy(np.asarray(f["image_size"], np.float32))[None]
-        return extract_matches(final_log_assignment(model, bt), threshold)["matches0"][0].numpy()
+        return extract_matches(final_log_assignment(model, features_batch(f0, f1)), threshold)["matches0"][0].numpy()
 
     return match
 

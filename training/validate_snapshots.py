@@ -21,7 +21,7 @@ import torch
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 from paraformer_train.model import Matcher  # noqa: E402
-from train import ensure_holdout, model_config, validate  # noqa: E402
+from train import build_model, ensure_holdout, model_config, validate  # noqa: E402
 
 
 def snapshots(path: str) -> Iterator[tuple[int, Matcher, dict, dict]]:
@@ -37,7 +37,8 @@ def snapshots(path: str) -> Iterator[tuple[int, Matcher, dict, dict]]:
 
 
 def Matcher_from_args(args: dict) -> Matcher:  # noqa: N802 (a constructor in all but name)
-    return Matcher(model_config(args), args.get("self_rotary"))
+    """The untrained network of a run's saved arguments (also the lightglue_arm diagnostic)."""
+    return build_model(model_config(args), args.get("self_rotary"))
 
 
 def main() -> None:

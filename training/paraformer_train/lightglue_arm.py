@@ -158,7 +158,7 @@ def state_from_lighterglue(theirs: dict, depth: int = 6) -> dict:
                 mine[f"cross_blocks.{i}.{ours}.{s}"] = theirs[f"{t}cross_attn.{kornia}.{s}"]
             mine[f"heads.{i}.proj.{s}"] = theirs[f"log_assignment.{i}.final_proj.{s}"]
             mine[f"heads.{i}.matchability.{s}"] = theirs[f"log_assignment.{i}.matchability.{s}"]
-    return {k: v.clone() for k, v in mine.items()}
+    return mine
 
 
 def lighterglue_state() -> dict:

@@ -19,10 +19,13 @@ import torch
 def features_batch(f0: dict, f1: dict, batch: int = 1) -> dict:
     """Two images' XFeat features (``paraformer.extract`` dicts) as the batch LighterGlue and
     the trainer read: ``keypoints{i}`` ``[B, N, 2]``, ``descriptors{i}`` ``[B, N, 64]``,
-    ``image_size{i}`` ``[B, 2]`` float32, the pair repeated ``batch`` times."""
+    ``image_size{i}`` ``[B, 2]`` float32 and, where the dicts have them, ``scores{i}`` ``[B, N]``
+    (Wave-PE reads them; LighterGlue does not), the pair repeated ``batch`` times."""
     bt = {}
     for i, f in ((0, f0), (1, f1)):
         bt[f"keypoints{i}"] = torch.from_numpy(f["keypoints"])[None].repeat(batch, 1, 1)
+        if "scores" in f:
+            bt[f"scores{i}"] = torch.from_numpy(f["scores"])[None].repeat(batch, 1)
         bt[f"descriptors{i}"] = torch.from_numpy(f["descriptors"])[None].repeat(batch, 1, 1)
         bt[f"image_size{i}"] = torch.from_numpy(np.asarray(f["image_size"], np.float32))[None].repeat(batch, 1)
     return bt
