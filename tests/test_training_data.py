@@ -1293,7 +1293,9 @@ def test_lightglue_arm_misuse_is_refused_with_the_reason(tmp_path):
     train.export(LightGlueArm(cfg), str(tmp_path / "arm.safetensors"))
     assert not (tmp_path / "arm.safetensors").exists()
     for extra, needle in ((["--preset", "lightglue_arm", "--init", str(tmp_path / "w.pt")], "from scratch or from LighterGlue"),
-                          (["--init", "lighterglue"], "needs --preset lightglue_arm")):
+                          (["--init", "lighterglue"], "start a paraformer of width 96, 1 head, 12 layers"),
+                          (["--init", "lighterglue", "--heads", "1", "--depth", "12", "--unshare", "qkv", "merge"],
+                           "'dim': (32, 96)")):
         out = subprocess.run([sys.executable, str(Path(train.__file__)), "--run", str(tmp_path / "run"), "--work",
                               str(tmp_path / "work"), "--dim", "32", *extra], capture_output=True, text=True)
         assert out.returncode != 0 and needle in out.stderr, (extra, out.stderr)
@@ -1320,6 +1322,58 @@ def test_lightglue_arm_given_lighterglues_weights_computes_lighterglue():
                                  "image_size": data[f"image_size{i}"]} for i in (0, 1)})["log_assignment"]
         # float32 rounding of log-probabilities near -20 after six layers: up to ~3e-4 seen.
         assert torch.allclose(arm(data)["log_assignment"], ref, rtol=1e-4, atol=1e-3)
+
+
+def test_lighterglue_transplant_computes_the_serial_layers_and_starts_without_positions():
+    """`--init lighterglue` of a SPEC ParaFormer (12 parallel layers, q/k/v and merges
+    unshared): layer 2i is LightGlue's self block i, layer 2i+1 its cross block i. The
+    independent reference is the arm (itself checked against LighterGlue): given the arm's
+    rotary encoding (outside the SPEC, `SelfRotary`, rescaled from LightGlue's position
+    normalisation to the SPEC's), the ParaFormer's features after its last layer are the arm's.
+    Without it, as trained, Wave-PE adds nothing at the start and the closed branches' fuse
+    columns are zero."""
+    from train import model_config
+    from paraformer_train.lightglue_arm import LightGlueArm, lightglue_positions
+    from paraformer_train.lighterglue_transplant import SCORE_SCALE, check_transplant_config, paraformer_state_from_arm
+    from paraformer_train.model import Matcher
+
+    torch.manual_seed(3)
+    arm = LightGlueArm(model_config({"preset": "lightglue_arm", "dim": 96, "heads": 1, "depth": 6, "sinkhorn": 20})).eval()
+    for p in arm.parameters():  # away from PyTorch's init, so that every mapped tensor matters
+        p.data.add_(0.05 * torch.randn_like(p))
+    cfg = model_config({"preset": "paraformer", "dim": 96, "heads": 1, "depth": 12, "sinkhorn": 20,
+                        "unshare": ["qkv", "merge"]})
+    check_transplant_config(cfg)
+    with_rotary = Matcher(cfg, (1.0, 1.0)).eval()
+    state = paraformer_state_from_arm(arm.state_dict(), with_rotary.state_dict(), bin_score=2.0)
+    # LightGlue divides by half the longer side, the SPEC by 0.7 of it.
+    state["self_rotary.freq.weight"] = arm.state_dict()["rotary.freq.weight"] * 1.4
+    with_rotary.load_state_dict(state)
+    data = _random_pair(b=2, m=40, n=30, seed=9)
+    with torch.no_grad():
+        x, y = with_rotary.body(*with_rotary.encode_pair(data), with_rotary.rotations(data))
+        ax, ay = arm.input_proj(data["descriptors0"]), arm.input_proj(data["descriptors1"])
+        rx, ry = (arm.rotary(lightglue_positions(data[f"keypoints{i}"], data[f"image_size{i}"])) for i in (0, 1))
+        for sb, cb in zip(arm.self_blocks, arm.cross_blocks):
+            ax, ay = cb(sb(ax, rx), sb(ay, ry))
+        assert torch.allclose(x, ax, atol=1e-4) and torch.allclose(y, ay, atol=1e-4), (x - ax).abs().max()
+        assert not torch.allclose(x, arm.input_proj(data["descriptors0"]), atol=0.1)
+
+    spec = Matcher(cfg).eval()
+    spec.load_state_dict(paraformer_state_from_arm(arm.state_dict(), spec.state_dict(), bin_score=2.0))
+    with torch.no_grad():
+        x0, _ = spec.encode_pair(data)
+        assert torch.equal(x0, spec.input_proj(data["descriptors0"]))
+        mx = spec.final_proj(x0)
+        ref = arm.heads[5].proj(x0) * SCORE_SCALE ** 0.5
+        assert torch.allclose(mx, ref, atol=1e-5)
+    assert float(spec.bin_score.detach()) == 2.0
+    for layer, closed in ((4, slice(192, 288)), (5, slice(96, 192))):
+        assert not spec.layers[layer].fuse[0].weight[:, closed].any()
+    with pytest.raises(ValueError, match="'num_layers': \\(6, 12\\)"):
+        check_transplant_config(cfg | {"num_layers": 6})
+    with pytest.raises(ValueError, match="share_qkv"):
+        check_transplant_config(model_config({"preset": "paraformer", "dim": 96, "heads": 1, "depth": 12, "sinkhorn": 20}))
 
 
 def test_holdout_peers_scores_a_training_checkpoint(tmp_path):

