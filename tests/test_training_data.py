@@ -1293,7 +1293,7 @@ def test_lightglue_arm_misuse_is_refused_with_the_reason(tmp_path):
     train.export(LightGlueArm(cfg), str(tmp_path / "arm.safetensors"))
     assert not (tmp_path / "arm.safetensors").exists()
     for extra, needle in ((["--preset", "lightglue_arm", "--init", str(tmp_path / "w.pt")], "from scratch or from LighterGlue"),
-                          (["--init", "lighterglue"], "start a paraformer of width 96, 1 head, 12 layers"),
+                          (["--init", "lighterglue"], "start a paraformer of width 96, 1 head, an even number of layers"),
                           (["--init", "lighterglue", "--heads", "1", "--depth", "12", "--unshare", "qkv", "merge"],
                            "'dim': (32, 96)")):
         out = subprocess.run([sys.executable, str(Path(train.__file__)), "--run", str(tmp_path / "run"), "--work",
@@ -1370,8 +1370,18 @@ def test_lighterglue_transplant_computes_the_serial_layers_and_starts_without_po
     assert float(spec.bin_score.detach()) == 2.0
     for layer, closed in ((4, slice(192, 288)), (5, slice(96, 192))):
         assert not spec.layers[layer].fuse[0].weight[:, closed].any()
-    with pytest.raises(ValueError, match="'num_layers': \\(6, 12\\)"):
-        check_transplant_config(cfg | {"num_layers": 6})
+    with pytest.raises(ValueError, match="'num_layers': \\(7, '2, 4, .., 12'\\)"):
+        check_transplant_config(cfg | {"num_layers": 7})
+    with pytest.raises(ValueError, match="'num_layers': \\(14, "):
+        check_transplant_config(cfg | {"num_layers": 14})
+    # A shallower transplant is LightGlue's first layers with the head after the last of them.
+    short_cfg = cfg | {"num_layers": 6}
+    check_transplant_config(short_cfg)
+    short = Matcher(short_cfg).eval()
+    short.load_state_dict(paraformer_state_from_arm(arm.state_dict(), short.state_dict()))
+    with torch.no_grad():
+        assert torch.allclose(short.final_proj(x0), arm.heads[2].proj(x0) * SCORE_SCALE ** 0.5, atol=1e-5)
+        assert torch.equal(short.layers[5].fuse[3].weight, spec.layers[5].fuse[3].weight)
     with pytest.raises(ValueError, match="share_qkv"):
         check_transplant_config(model_config({"preset": "paraformer", "dim": 96, "heads": 1, "depth": 12, "sinkhorn": 20}))
 

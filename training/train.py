@@ -619,7 +619,7 @@ def main() -> None:
                          "checkpoint: its EMA weights), e.g. to fine-tune the GPU run on real pairs; a "
                          "ParaFormer init with fewer layers than --depth is grown by identity layers; 'lighterglue': LighterGlue's "
                          "trained weights, for the lightglue_arm diagnostic or a SPEC ParaFormer --dim 96 --heads 1 "
-                         "--depth 12 --unshare qkv merge (paraformer_train/lighterglue_transplant.py)")
+                         "--depth 2k --unshare qkv merge (k <= 6: LighterGlue's first k layers) (paraformer_train/lighterglue_transplant.py)")
     ap.add_argument("--grow-copy", type=float, default=None, metavar="SCALE",
                     help="with a grown --init: the new layers start as copies of the init's last layers, "
                          "their last fuse Linear scaled by SCALE (e.g. 0.1), instead of as identity layers")

@@ -2,7 +2,7 @@
 ``share_merge`` off), so that a ParaFormer inherits what LighterGlue learned from its
 glue-factory pairs instead of learning it from scratch on ours.
 
-Each LighterGlue layer (a self-attention block, then a cross-attention block, each
+Each of LighterGlue's first ``num_layers / 2`` layers (a self-attention block, then a cross-attention block, each
 ``x + ffn([x, message])``) becomes two parallel layers: layer 2i keeps only its self branch,
 layer 2i+1 only its cross branch (the other branch's columns of ``fuse.0`` are zero, so the
 layer computes the serial block exactly and training may open the other branch). LightGlue's
@@ -10,7 +10,8 @@ cross-attention already shares one similarity ``qk(x)·qk(y)ᵀ`` both ways, whi
 attention weight sharing with q and k projections equal. What does not carry over is its
 rotary encoding: the transplant starts without positions (Wave-PE's last Linear is zero, so
 ``x⁰`` is the projected descriptor) and must learn them through Wave-PE. Its head: SPEC §8's
-``final_proj`` is LightGlue's last ``final_proj`` (the same ⟨·,·⟩/√C similarity); Sinkhorn with
+``final_proj`` is that of LightGlue's head after its last used layer (LightGlue is trained
+with a head per layer, so a shallower transplant starts as LightGlue stopped early; the same ⟨·,·⟩/√C similarity); Sinkhorn with
 a dustbin replaces the dual softmax and matchability.
 """
 from __future__ import annotations
@@ -26,8 +27,10 @@ LIGHTERGLUE_DIM, LIGHTERGLUE_HEADS, LIGHTERGLUE_DEPTH = 96, 1, 6
 def check_transplant_config(cfg: dict) -> None:
     """Refuse, by name, a ParaFormer config that LighterGlue's weights cannot start."""
     cfg = resolve_config(cfg)
+    layers = cfg.get("num_layers")
+    depth_ok = isinstance(layers, int) and layers % 2 == 0 and 2 <= layers <= 2 * LIGHTERGLUE_DEPTH
     want = {"model": "paraformer", "dim": LIGHTERGLUE_DIM, "num_heads": LIGHTERGLUE_HEADS,
-            "num_layers": 2 * LIGHTERGLUE_DEPTH, "share_qkv": False, "share_merge": False,
+            "num_layers": layers if depth_ok else "2, 4, .., 12", "share_qkv": False, "share_merge": False,
             "share_attention_weights": True, "positional_encoding": "wave", "descriptor_dim": 64}
     have = {"model": cfg.get("model"), "dim": cfg.get("dim"), "num_heads": cfg.get("num_heads"),
             "num_layers": cfg.get("num_layers"), "positional_encoding": cfg.get("positional_encoding"),
@@ -35,8 +38,9 @@ def check_transplant_config(cfg: dict) -> None:
     have |= {k: cfg.get("parallel", {}).get(k) for k in ("share_qkv", "share_merge", "share_attention_weights")}
     diff = {k: (have[k], v) for k, v in want.items() if have[k] != v}
     if diff:
-        raise ValueError("LighterGlue's weights start a paraformer of width 96, 1 head, 12 layers with q/k/v and "
-                         f"merges unshared (--preset paraformer --dim 96 --heads 1 --depth 12 --unshare qkv merge); "
+        raise ValueError("LighterGlue's weights start a paraformer of width 96, 1 head, an even number of layers up to 12 "
+                         f"(two per LighterGlue layer) with q/k/v and merges unshared (--preset paraformer --dim 96 "
+                         f"--heads 1 --depth 12 --unshare qkv merge); "
                          f"this run differs (run, needed): {diff}")
 
 
@@ -54,6 +58,7 @@ def paraformer_state_from_arm(arm: dict, own: dict, bin_score: float = BIN_SCORE
     scaled so that Sinkhorn's scores are ``score_scale`` times LightGlue's similarities."""
     out = {k: v.clone() for k, v in own.items()}
     c = arm["input_proj.weight"].shape[0]
+    depth = sum(1 for k in own if k.endswith(".fuse.0.weight")) // 2
 
     def put(key: str, value: torch.Tensor) -> None:
         if key not in out:
@@ -64,16 +69,16 @@ def paraformer_state_from_arm(arm: dict, own: dict, bin_score: float = BIN_SCORE
 
     for s in ("weight", "bias"):
         put(f"input_proj.{s}", arm[f"input_proj.{s}"])
-        put(f"final_proj.{s}", arm[f"heads.{LIGHTERGLUE_DEPTH - 1}.proj.{s}"] * score_scale ** 0.5)
+        put(f"final_proj.{s}", arm[f"heads.{depth - 1}.proj.{s}"] * score_scale ** 0.5)
         out[f"wave_pe.fuse.3.{s}"] = torch.zeros_like(out[f"wave_pe.fuse.3.{s}"])
     out["bin_score"] = torch.full_like(out["bin_score"], bin_score)
-    for i in range(LIGHTERGLUE_DEPTH):
+    for i in range(depth):
         sb, cb = f"self_blocks.{i}.", f"cross_blocks.{i}."
         q, k, v = arm[sb + "qkv.weight"].chunk(3, 0)
         qb, kb, vb = arm[sb + "qkv.bias"].chunk(3, 0)
         # The branch a layer does not use starts as the neighbouring block's weights (closed by
         # zero fuse columns): a sensible start should training open it.
-        self_next = f"self_blocks.{min(i + 1, LIGHTERGLUE_DEPTH - 1)}."
+        self_next = f"self_blocks.{min(i + 1, depth - 1)}."
         qn, kn, vn = arm[self_next + "qkv.weight"].chunk(3, 0)
         qnb, knb, vnb = arm[self_next + "qkv.bias"].chunk(3, 0)
         for layer, (sq, sk, sv, sqb, skb, svb, s_out) in (
