@@ -12,7 +12,10 @@ kernels), alternated with the rest.
     python benches/config_latency.py --config h2=64,2,4 --config unshared=64,2,4,qkv,merge
 
 A config is NAME=[u:]DIM,HEADS,DEPTH[,OPTION...], OPTION one of ``train.py --unshare``'s
-switches (qkv, merge, attention_weights: turned off). ``u:`` makes it the ParaFormer-U of
+switches (qkv, merge, attention_weights: turned off) or ``serial``: the weights of ``train.py
+--serial`` (LighterGlue's layout: even layers' cross and odd layers' self messages meet zero
+fuse columns, and the engine skips those attentions), e.g. ``--config
+transplant=96,1,12,qkv,merge,serial``. ``u:`` makes it the ParaFormer-U of
 outer width DIM that ``train.py --preset paraformer_u`` trains (its stage depths are fixed,
 DEPTH is not read), whose OPTIONs may also be a pooling (attentional, gpool, random: its
 ``--pooling``) and ``dims=C0/C1/C2/C3/C4`` (its ``--stage-dims``), e.g. ``--config
@@ -36,6 +39,21 @@ DEFAULT_CONFIGS = ["h2=64,2,4", "unshared=64,2,4,qkv,merge", "depth6=64,2,6", "d
                    "width96_h2=96,2,4", "lighterglue_size=96,2,6"]
 
 
+def is_serial(text: str) -> bool:
+    """Whether a ``--config`` asks for ``serial`` weights."""
+    return "serial" in text.partition("=")[2].split(",")[3:]
+
+
+def close_alternate_branches(model) -> None:
+    """Zeroes layer 2i's cross and layer 2i+1's self columns of ``fuse.0`` (``--serial``)."""
+    import torch
+
+    c = model.config["dim"]
+    with torch.no_grad():
+        for i, layer in enumerate(model.layers):
+            layer.fuse[0].weight[:, slice(2 * c, 3 * c) if i % 2 == 0 else slice(c, 2 * c)] = 0
+
+
 def parse_config(text: str) -> tuple[str, dict]:
     """``NAME=[u:]DIM,HEADS,DEPTH[,OPTION...]`` → (name, the model config ``train.py`` would train)."""
     name, sep, spec = text.partition("=")
@@ -54,7 +72,10 @@ def parse_config(text: str) -> tuple[str, dict]:
 
     options = {"unshare": [], "pooling": None, "stage_dims": None}
     for opt in fields[3:]:
-        if opt in ("attentional", "gpool", "random"):
+        if opt == "serial":
+            if u:
+                raise SystemExit(f"error: --config {text!r}: serial weights are a ParaFormer's, not a ParaFormer-U's")
+        elif opt in ("attentional", "gpool", "random"):
             options["pooling"] = opt
         elif opt.startswith("dims="):
             try:
@@ -86,7 +107,9 @@ def main() -> None:
     args = ap.parse_args()
     for var in ("RAYON_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(args.threads)
-    configs = [parse_config(c) for c in (args.config or DEFAULT_CONFIGS)]
+    texts = args.config or DEFAULT_CONFIGS
+    configs = [parse_config(c) for c in texts]
+    serial = {name for (name, _), text in zip(configs, texts) if is_serial(text)}
     import torch
 
     import paraformer
@@ -129,6 +152,8 @@ def main() -> None:
     for name, cfg in configs:
         torch.manual_seed(0)
         ref = TorchMatcher(cfg | {"sinkhorn_iterations": iters}).eval()
+        if name in serial:
+            close_alternate_branches(ref)
         params[name] = sum(v.numel() for v in ref.state_dict().values())
         path = os.path.join(tmp.name, f"{name}.safetensors")
         save_safetensors(ref, path)

@@ -255,9 +255,21 @@ def test_config_latency_parses_paraformer_and_u_configs():
         assert cfg["model"] == "paraformer_u" and cfg["stage_dims"] == [96, 144, 48, 144, 96]
         _, cfg = mod.parse_config("u96g=u:96,3,4,gpool,dims=96/96/48/96/96,merge")
         assert (cfg["pooling"], cfg["stage_dims"], cfg["parallel"]["share_merge"]) == ("gpool", [96, 96, 48, 96, 96], False)
+        text = "t=32,1,4,qkv,merge,serial"
+        _, cfg = mod.parse_config(text)
+        assert mod.is_serial(text) and not mod.is_serial("w96=96,3,4,qkv")
+        import torch
+        from paraformer_train.model import Matcher
+
+        model = Matcher(cfg)
+        mod.close_alternate_branches(model)
+        w = [layer.fuse[0].weight.detach() for layer in model.layers]
+        assert not w[0][:, 64:].any() and w[0][:, 32:64].abs().sum() > 0
+        assert not w[1][:, 32:64].any() and w[1][:, 64:].abs().sum() > 0
+        assert torch.equal(w[2][:, 64:], torch.zeros(64, 32))
         for spec, needle in (("u=u:32,32,4", "stage widths [32, 48, 16, 48, 32]"), ("x=96,5,4", "multiple of HEADS"),
                              ("x=96,3", "expected NAME="), ("x=u:a,3,4", "must be integers"),
-                             ("x=u:96,3,4,dims=96/x", "dims=C0/C1/C2/C3/C4"), ("x=96,3,4,gpool", "ParaFormer-U's"),
+                             ("x=u:96,3,4,dims=96/x", "dims=C0/C1/C2/C3/C4"), ("x=96,3,4,gpool", "ParaFormer-U's"), ("x=u:96,3,4,serial", "not a ParaFormer-U's"),
                              ("x=u:96,3,4,dims=96/96/96", "five widths"), ("x=96,3,4,sideways", "unknown sharing")):
             with pytest.raises(SystemExit, match=re.escape(needle)):
                 mod.parse_config(spec)

@@ -1386,6 +1386,51 @@ def test_lighterglue_transplant_computes_the_serial_layers_and_starts_without_po
         check_transplant_config(model_config({"preset": "paraformer", "dim": 96, "heads": 1, "depth": 12, "sinkhorn": 20}))
 
 
+def test_serial_transplant_keeps_its_closed_branches_and_the_engine_skips_them(tmp_path):
+    """`train.py --serial`: layer 2i's cross and layer 2i+1's self columns of fuse.0 are zeroed
+    and stay zero through AdamW steps (their gradients are zeroed, so Adam's moments stay zero)
+    while the open columns train; the engine, which skips those branches, gives PyTorch's log
+    assignment on the exported weights."""
+    import paraformer
+    from train import model_config
+    from paraformer_train.io import save_safetensors
+    from paraformer_train.lighterglue_transplant import closed_columns, zero_closed
+    from paraformer_train.model import Matcher
+
+    torch.manual_seed(4)
+    cfg = model_config({"preset": "paraformer", "dim": 96, "heads": 1, "depth": 4, "sinkhorn": 20,
+                        "unshare": ["qkv", "merge"]})
+    model = Matcher(cfg)
+    closed = closed_columns(model)
+    assert [cols.start for _, cols in closed] == [192, 96, 192, 96]
+    assert zero_closed(closed) > 0 and zero_closed(closed) == 0
+    opened = model.layers[0].fuse[0].weight[:, :192].detach().clone()
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-2, weight_decay=0.01)
+    data = _random_pair(b=2, m=30, n=25, seed=4)
+    for i in (0, 1):  # inside the 320 x 240 image, as the engine checks
+        data[f"keypoints{i}"] = data[f"keypoints{i}"] * torch.tensor([1.0, 0.75])
+    for _ in range(3):
+        opt.zero_grad()
+        model(data)["log_assignment"].exp().sum().backward()
+        zero_closed(closed, grads=True)
+        opt.step()
+    assert all(not w[:, cols].any() for w, cols in closed)
+    assert not torch.equal(model.layers[0].fuse[0].weight[:, :192], opened)
+
+    model.eval()
+    path = tmp_path / "serial.safetensors"
+    save_safetensors(model, str(path))
+    engine = paraformer.Matcher.from_file(path)
+    one = {k: v[:1] for k, v in data.items()}
+    out = engine.match(one["keypoints0"][0].numpy(), one["descriptors0"][0].numpy(), one["keypoints1"][0].numpy(),
+                       one["descriptors1"][0].numpy(), scores0=one["scores0"][0].numpy(), scores1=one["scores1"][0].numpy(),
+                       size0=tuple(one["image_size0"][0].tolist()), size1=tuple(one["image_size1"][0].tolist()),
+                       return_log_assignment=True)
+    with torch.no_grad():
+        ref = model(one)["log_assignment"][0].numpy()
+    assert np.abs(out["log_assignment"] - ref).max() < 1e-3
+
+
 def test_holdout_peers_scores_a_training_checkpoint(tmp_path):
     """`holdout_peers.py --checkpoint LABEL=PATH@THR`: a train.py checkpoint's EMA weights (here
     the lightglue_arm's, which has no weights file) match as the model itself does at THR; a

@@ -44,9 +44,9 @@ MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare", 
               "self_rotary")
 # A resume refuses a change of these (the model's, and --layer-loss, whose heads are in the
 # optimiser's state); runs saved before an argument existed trained with its default here.
-RESUME_ARGS = MODEL_ARGS + ("layer_loss", "lr_scale_from")
+RESUME_ARGS = MODEL_ARGS + ("layer_loss", "lr_scale_from", "serial")
 RESUME_DEFAULTS = {"unshare": [], "layer_loss": False, "stage_dims": None, "pooling": None, "lr_scale_from": None,
-                   "self_rotary": None}
+                   "self_rotary": None, "serial": False}
 SHARING = ("qkv", "merge", "attention_weights")
 
 
@@ -537,6 +537,10 @@ def main() -> None:
     ap.add_argument("--unshare", nargs="*", choices=SHARING, default=[],
                     help="ParaFormer(-U): sharing switches to turn off (separate self/cross q/k/v, merges, "
                          "or cross-attention weights); more parameters at little CPU cost")
+    ap.add_argument("--serial", action="store_true",
+                    help="the LighterGlue transplant's layout (--init lighterglue, or a checkpoint of one) stays "
+                         "serial: layer 2i's cross-branch and layer 2i+1's self-branch fuse columns are zeroed and "
+                         "kept at zero, so each layer computes one attention and the engine skips the other")
     ap.add_argument("--layer-loss", action="store_true",
                     help="ParaFormer: average the loss over every layer's assignment (training-only heads)")
     ap.add_argument("--phase-gain", type=float, nargs=2, default=None, metavar=("LO", "HI"),
@@ -761,6 +765,19 @@ def main() -> None:
         print(f"initialised from {args.init}" + (f", new ({how}) parts {grown}" if grown else ""), flush=True)
     elif args.grow_copy is not None:
         sys.exit("error: --grow-copy needs --init (weights with fewer layers than --depth)")
+    closed = None
+    if args.serial:
+        from paraformer_train.lighterglue_transplant import closed_columns, zero_closed
+
+        try:
+            closed = closed_columns(model)
+        except (ValueError, AttributeError) as e:
+            sys.exit(f"error: --serial: {e}")
+        removed = zero_closed(closed)
+        if ema is not model:
+            zero_closed(closed_columns(ema))
+        if removed:
+            print(f"--serial: closed branches zeroed (their fuse columns had norm {removed:.3f})", flush=True)
     holdout = ensure_holdout(args.val_pairs)
     if args.validate_only:
         v = validate(ema, holdout, 512, args.val_threshold, auc=False)
@@ -855,6 +872,8 @@ def main() -> None:
                 loss = loss + args.hint * hint
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            if closed is not None:  # Adam's moments of the closed weights stay zero, so do they
+                zero_closed(closed, grads=True)
             torch.nn.utils.clip_grad_norm_(params, 1.0)
             opt.step()
             if ema is not model:

@@ -115,3 +115,29 @@ def transplant_state(model) -> dict:
 
     check_transplant_config(model.config)
     return paraformer_state_from_arm(lighterglue_state(), model.state_dict())
+
+
+def closed_columns(model) -> list[tuple[torch.nn.Parameter, slice]]:
+    """The transplant's serial layout: each layer's ``fuse.0`` weight and the message columns
+    of the branch it does not use (layer 2i: cross, 2i+1: self). Kept at zero (``--serial``),
+    they make every layer add exactly nothing from that branch, which the engine then skips
+    (``crates/paraformer/src/layers.rs``: a branch whose fuse columns are all zero)."""
+    check_transplant_config(model.config)
+    c = model.config["dim"]
+    return [(layer.fuse[0].weight, slice(2 * c, 3 * c) if i % 2 == 0 else slice(c, 2 * c))
+            for i, layer in enumerate(model.layers)]
+
+
+@torch.no_grad()
+def zero_closed(columns: list[tuple[torch.nn.Parameter, slice]], grads: bool = False) -> float:
+    """Zeroes the closed columns (of the gradients with ``grads``); returns the weights' norm
+    that was there before (0 once they are closed)."""
+    before = 0.0
+    for w, cols in columns:
+        t = w.grad if grads else w
+        if t is None:
+            continue
+        if not grads:
+            before += float(t[:, cols].norm()) ** 2
+        t[:, cols] = 0
+    return before ** 0.5

@@ -63,6 +63,17 @@ impl Linear {
         Linear { wt, bias, in_dim, out_dim, bf16, packed: Default::default() }
     }
 
+    /// This layer on the input columns `keep` only (in order): the others' weights are
+    /// dropped, for inputs that are known to meet zero weights.
+    pub fn keep_inputs(&self, keep: &[std::ops::Range<usize>]) -> Linear {
+        let mut wt = Vec::new();
+        for r in keep {
+            wt.extend_from_slice(&self.wt[r.start * self.out_dim..r.end * self.out_dim]);
+        }
+        let in_dim = keep.iter().map(|r| r.len()).sum();
+        Linear { wt, bias: self.bias.clone(), in_dim, out_dim: self.out_dim, bf16: self.bf16, packed: Default::default() }
+    }
+
     /// Folds a following per-channel affine map `y·scale + shift` into the layer.
     fn fold_affine(&mut self, scale: &[f32], shift: &[f32]) {
         for row in self.wt.chunks_exact_mut(self.out_dim) {
