@@ -1417,6 +1417,18 @@ def test_serial_transplant_keeps_its_closed_branches_and_the_engine_skips_them(t
     assert all(not w[:, cols].any() for w, cols in closed)
     assert not torch.equal(model.layers[0].fuse[0].weight[:, :192], opened)
 
+    # Skipping the closed branches computes the same, and their gradients are zero anyway.
+    from paraformer_train.lighterglue_transplant import close_branches
+
+    skipping = Matcher(cfg)
+    skipping.load_state_dict(model.state_dict())
+    close_branches(skipping)
+    assert [layer.branches for layer in skipping.layers] == [(True, False), (False, True)] * 2
+    out_full, out_skip = model(data)["log_assignment"], skipping(data)["log_assignment"]
+    assert torch.allclose(out_full, out_skip, atol=1e-5)
+    out_skip.exp().sum().backward()
+    assert all(not w.grad[:, cols].any() for w, cols in closed_columns(skipping))
+
     model.eval()
     path = tmp_path / "serial.safetensors"
     save_safetensors(model, str(path))

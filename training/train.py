@@ -767,15 +767,15 @@ def main() -> None:
         sys.exit("error: --grow-copy needs --init (weights with fewer layers than --depth)")
     closed = None
     if args.serial:
-        from paraformer_train.lighterglue_transplant import closed_columns, zero_closed
+        from paraformer_train.lighterglue_transplant import close_branches, zero_closed
 
         try:
-            closed = closed_columns(model)
+            closed = close_branches(model)
         except (ValueError, AttributeError) as e:
             sys.exit(f"error: --serial: {e}")
         removed = zero_closed(closed)
         if ema is not model:
-            zero_closed(closed_columns(ema))
+            zero_closed(close_branches(ema))
         if removed:
             print(f"--serial: closed branches zeroed (their fuse columns had norm {removed:.3f})", flush=True)
     holdout = ensure_holdout(args.val_pairs)

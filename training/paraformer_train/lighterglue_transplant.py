@@ -141,3 +141,13 @@ def zero_closed(columns: list[tuple[torch.nn.Parameter, slice]], grads: bool = F
             before += float(t[:, cols].norm()) ** 2
         t[:, cols] = 0
     return before ** 0.5
+
+
+def close_branches(model) -> list[tuple[torch.nn.Parameter, slice]]:
+    """``--serial``: zeroes the closed columns (``zero_closed``) and has each layer skip its
+    closed branch (``ParallelLayer.branches``), which computes the same and trains faster.
+    Returns the closed columns."""
+    columns = closed_columns(model)
+    for i, layer in enumerate(model.layers):
+        layer.branches = (True, False) if i % 2 == 0 else (False, True)
+    return columns

@@ -283,9 +283,10 @@ class ParallelAttention(nn.Module):
             return self.merge, self.merge
         return self.self_merge, self.cross_merge
 
-    def forward(self, x, y, need_probs: bool = True, rot=None):
+    def forward(self, x, y, need_probs: bool = True, rot=None, branches=(True, True)):
         """``need_probs``: also return the self-attention probabilities (attentional pooling
-        reads them); without, every attention is fused SDPA. The shared cross-attention of
+        reads them); without, every attention is fused SDPA. ``branches``: (self, cross) to
+        compute; a skipped one's messages are None. The shared cross-attention of
         image 1 is SDPA with query K_y and key Q_x: exactly the column softmax of Q_x·K_yᵀ.
         ``rot``: (image 0's, image 1's) ``SelfRotary`` output, applied to self-attention's
         queries and keys only (not in the SPEC; None there)."""
@@ -298,8 +299,13 @@ class ParallelAttention(nn.Module):
             q, k = sh(sp[0], t), sh(sp[1], t)
             return (q, k) if r is None else (rotate_pairs(q, r), rotate_pairs(k, r))
 
-        self_x, prob_x = attention(*self_qk(x, rx), sh(sp[2], x), need_probs)
-        self_y, prob_y = attention(*self_qk(y, ry), sh(sp[2], y), need_probs)
+        if branches[0] or need_probs:
+            self_x, prob_x = attention(*self_qk(x, rx), sh(sp[2], x), need_probs)
+            self_y, prob_y = attention(*self_qk(y, ry), sh(sp[2], y), need_probs)
+        else:
+            self_x = prob_x = self_y = prob_y = None
+        if not branches[1]:
+            return (self_x, None), (self_y, None), (prob_x, prob_y)
         vx, vy = sh(cp[2], x), sh(cp[2], y)
         qx, ky = sh(cp[0], x), sh(cp[1], y)
         cross_x = attention(qx, ky, vy, need_prob=False)[0]
@@ -315,13 +321,20 @@ class ParallelLayer(nn.Module):
         super().__init__()
         self.attn = ParallelAttention(c, heads, switches)
         self.fuse = nn.Sequential(nn.Linear(3 * c, 2 * c), nn.LayerNorm(2 * c), nn.GELU(), nn.Linear(2 * c, c))
+        # (self, cross) messages computed; a closed one (its fuse columns held at zero, as
+        # train.py --serial does) is a zero message, which is what it contributes anyway.
+        self.branches = (True, True)
 
     def forward(self, x, y, need_probs: bool = True, rot=None):
-        (sx, cx), (sy, cy), probs = self.attn(x, y, need_probs, rot)
+        (sx, cx), (sy, cy), probs = self.attn(x, y, need_probs, rot, self.branches)
         m_self, m_cross = self.attn.merges()
-        x2 = x + self.fuse(torch.cat([x, m_self(sx), m_cross(cx)], -1))
-        y2 = y + self.fuse(torch.cat([y, m_self(sy), m_cross(cy)], -1))
-        return x2, y2, probs
+
+        def update(f, s, c):
+            ms = m_self(s) if self.branches[0] else torch.zeros_like(f)
+            mc = m_cross(c) if self.branches[1] else torch.zeros_like(f)
+            return f + self.fuse(torch.cat([f, ms, mc], -1))
+
+        return update(x, sx, cx), update(y, sy, cy), probs
 
 
 def splitmix64_indices(n: int, k: int, seed: int) -> list[int]:
