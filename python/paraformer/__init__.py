@@ -359,6 +359,10 @@ def extract(image: Union[str, os.PathLike, ArrayLike], max_keypoints: int = 2048
 def flops(config_or_matcher: Union[Matcher, Mapping[str, Any]], m: int, n: int) -> int:
     """Multiply-accumulates of one forward pass (SPEC §10; the paper's "FLOPs").
 
+    The count is the config's: weights whose parallel layers close a branch (all-zero
+    ``fuse.0`` columns, as the serial LighterGlue transplant has) run less, which
+    ``Matcher.profile`` counts.
+
     Args:
         config_or_matcher: a ``Matcher`` or a config dict.
         m: keypoints of image 0.
