@@ -260,9 +260,14 @@ pub(crate) fn head_values<'a>(v: View<'a>, heads: usize, buf: &'a mut Vec<f32>) 
 // ---- vector helpers -----------------------------------------------------------------
 
 /// `2^x` by range reduction and a polynomial `p(f) ≈ 2^f` on [−½, ½] (coefficients of
-/// `f^0, f^1, …`): `2^x = 2^n·p(x − n)` with `vscalefps`; 0 below −150, NaN stays NaN.
+/// `f^0, f^1, …`): `2^x = 2^n·p(x − n)` with `vscalefps`; exactly 0 below −125, NaN stays NaN.
+/// No subnormal results: sharp attention rows (trained LightGlue layers) have many scores
+/// 90–100 below their maximum, and products that read subnormals take microcode assists
+/// (the transplant's fp32 layers ran 2.6× slower with them).
 #[inline(always)]
 unsafe fn exp2_poly<const N: usize>(x: __m512, coef: [f32; N]) -> __m512 {
+    // x ≥ −125 or NaN: 2^n·p with p ≥ 0.7 stays a normal float.
+    let keep = _mm512_cmp_ps_mask::<_CMP_NLT_UQ>(x, _mm512_set1_ps(-125.0));
     // max(−160, x) returns x itself when x is NaN (second operand).
     let x = _mm512_max_ps(_mm512_set1_ps(-160.0), x);
     let n = _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(x);
@@ -271,7 +276,7 @@ unsafe fn exp2_poly<const N: usize>(x: __m512, coef: [f32; N]) -> __m512 {
     for &c in coef[..N - 1].iter().rev() {
         p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(c));
     }
-    _mm512_scalef_ps(p, n)
+    _mm512_maskz_mov_ps(keep, _mm512_scalef_ps(p, n))
 }
 
 /// `2^x` to 2.4e-7 relative error (degree-5 minimax).
@@ -924,6 +929,42 @@ pub(crate) mod tests {
         let mut ctx = Ctx::default();
         ctx.fused = false;
         ctx
+    }
+
+    /// `2^x` of the AVX-512 kernels: accurate over the softmax's range, exactly 0 (never a
+    /// subnormal, which would slow every product reading it) below −125, NaN kept.
+    #[test]
+    fn exp2_flushes_below_the_normal_range_and_keeps_nan() {
+        if crate::kernels::simd_level() < 4 {
+            eprintln!("skipped: no AVX-512 here");
+            return;
+        }
+        let xs: Vec<f32> = (0..4000).map(|i| -160.0 + i as f32 * 0.04).chain([f32::NAN, -1e30, 0.0]).collect();
+        for chunk in xs.chunks(16) {
+            let mut x = [0f32; 16];
+            x[..chunk.len()].copy_from_slice(chunk);
+            let mut y = [0f32; 16];
+            // SAFETY: simd_level 4 means AVX-512F is present; both arrays hold 16 floats.
+            unsafe {
+                #[target_feature(enable = "avx512f")]
+                unsafe fn run(x: &[f32; 16], y: &mut [f32; 16]) {
+                    use std::arch::x86_64::*;
+                    _mm512_storeu_ps(y.as_mut_ptr(), crate::attention_fused::x86::exp2v(_mm512_loadu_ps(x.as_ptr())));
+                }
+                run(&x, &mut y);
+            }
+            for (&xi, &yi) in x.iter().zip(&y).take(chunk.len()) {
+                if xi.is_nan() {
+                    assert!(yi.is_nan());
+                } else if xi < -125.0 {
+                    assert_eq!(yi, 0.0, "2^{xi}");
+                } else {
+                    assert!(yi.is_normal(), "2^{xi} = {yi:e} is not a normal float");
+                    let want = (xi as f64).exp2();
+                    assert!(((yi as f64 - want) / want).abs() < 5e-7, "2^{xi}: {yi:e} against {want:e}");
+                }
+            }
+        }
     }
 
     /// The fused kernels against the general path: odd sizes (padding of rows and
