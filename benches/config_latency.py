@@ -44,16 +44,6 @@ def is_serial(text: str) -> bool:
     return "serial" in text.partition("=")[2].split(",")[3:]
 
 
-def close_alternate_branches(model) -> None:
-    """Zeroes layer 2i's cross and layer 2i+1's self columns of ``fuse.0`` (``--serial``)."""
-    import torch
-
-    c = model.config["dim"]
-    with torch.no_grad():
-        for i, layer in enumerate(model.layers):
-            layer.fuse[0].weight[:, slice(2 * c, 3 * c) if i % 2 == 0 else slice(c, 2 * c)] = 0
-
-
 def parse_config(text: str) -> tuple[str, dict]:
     """``NAME=[u:]DIM,HEADS,DEPTH[,OPTION...]`` → (name, the model config ``train.py`` would train)."""
     name, sep, spec = text.partition("=")
@@ -115,6 +105,7 @@ def main() -> None:
     import paraformer
 
     from paraformer_train import Matcher as TorchMatcher, save_safetensors
+    from paraformer_train.lighterglue_transplant import alternate_closed_columns, zero_closed
     from shipped_compare import alternated_medians  # benches/, beside this script
 
     torch.set_num_threads(args.threads)
@@ -153,7 +144,7 @@ def main() -> None:
         torch.manual_seed(0)
         ref = TorchMatcher(cfg | {"sinkhorn_iterations": iters}).eval()
         if name in serial:
-            close_alternate_branches(ref)
+            zero_closed(alternate_closed_columns(ref))
         params[name] = sum(v.numel() for v in ref.state_dict().values())
         path = os.path.join(tmp.name, f"{name}.safetensors")
         save_safetensors(ref, path)

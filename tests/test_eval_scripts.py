@@ -261,8 +261,10 @@ def test_config_latency_parses_paraformer_and_u_configs():
         import torch
         from paraformer_train.model import Matcher
 
+        from paraformer_train.lighterglue_transplant import alternate_closed_columns, zero_closed
+
         model = Matcher(cfg)
-        mod.close_alternate_branches(model)
+        zero_closed(alternate_closed_columns(model))  # what main does with a serial config
         w = [layer.fuse[0].weight.detach() for layer in model.layers]
         assert not w[0][:, 64:].any() and w[0][:, 32:64].abs().sum() > 0
         assert not w[1][:, 32:64].any() and w[1][:, 64:].abs().sum() > 0

@@ -117,15 +117,20 @@ def transplant_state(model) -> dict:
     return paraformer_state_from_arm(lighterglue_state(), model.state_dict())
 
 
-def closed_columns(model) -> list[tuple[torch.nn.Parameter, slice]]:
-    """The transplant's serial layout: each layer's ``fuse.0`` weight and the message columns
-    of the branch it does not use (layer 2i: cross, 2i+1: self). Kept at zero (``--serial``),
-    they make every layer add exactly nothing from that branch, which the engine then skips
+def alternate_closed_columns(model) -> list[tuple[torch.nn.Parameter, slice]]:
+    """The serial layout of any ParaFormer: each layer's ``fuse.0`` weight and the message
+    columns of the branch it does not use (layer 2i: cross, 2i+1: self). Kept at zero, they
+    make every layer add exactly nothing from that branch, which the engine then skips
     (``crates/paraformer/src/layers.rs``: a branch whose fuse columns are all zero)."""
-    check_transplant_config(model.config)
     c = model.config["dim"]
     return [(layer.fuse[0].weight, slice(2 * c, 3 * c) if i % 2 == 0 else slice(c, 2 * c))
             for i, layer in enumerate(model.layers)]
+
+
+def closed_columns(model) -> list[tuple[torch.nn.Parameter, slice]]:
+    """``alternate_closed_columns`` of a model LighterGlue's weights can start (``--serial``)."""
+    check_transplant_config(model.config)
+    return alternate_closed_columns(model)
 
 
 @torch.no_grad()
@@ -148,6 +153,8 @@ def close_branches(model) -> list[tuple[torch.nn.Parameter, slice]]:
     closed branch (``ParallelLayer.branches``), which computes the same and trains faster.
     Returns the closed columns."""
     columns = closed_columns(model)
-    for i, layer in enumerate(model.layers):
-        layer.branches = (True, False) if i % 2 == 0 else (False, True)
+    c = model.config["dim"]
+    for layer, (_, cols) in zip(model.layers, columns):
+        self_closed = cols.start == c
+        layer.branches = (not self_closed, self_closed)
     return columns

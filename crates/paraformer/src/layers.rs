@@ -62,11 +62,12 @@ impl Fuse {
     /// `detect_closed: false` computes every branch (the tests' reference).
     fn build(c: usize, vb: VarBuilder, detect_closed: bool) -> CResult<Self> {
         let n = vb.pp(1);
-        let w = read(&vb.pp(0), &[2 * c, 3 * c], "weight")?;
+        let v0 = vb.pp(0);
+        let w = read(&v0, &[2 * c, 3 * c], "weight")?;
         let open = [1, 2].map(|b| {
             !detect_closed || w.chunks_exact(3 * c).any(|row| row[b * c..(b + 1) * c].iter().any(|&v| v != 0.0))
         });
-        let full = Linear::new(3 * c, 2 * c, vb.pp(0))?;
+        let full = Linear::from_weight(&w, read(&v0, &[2 * c], "bias")?, 3 * c, 2 * c);
         let keep: Vec<_> = std::iter::once(0..c)
             .chain((0..2).filter(|&b| open[b]).map(|b| (b + 1) * c..(b + 2) * c))
             .collect();
@@ -78,11 +79,6 @@ impl Fuse {
             norm_bias: read(&n, &[2 * c], "bias")?,
             l3: Linear::new(2 * c, c, vb.pp(3))?.with_bf16(),
         })
-    }
-
-    /// Whether the (self, cross) messages reach the update.
-    pub fn open(&self) -> [bool; 2] {
-        self.open
     }
 
     pub fn forward(&self, ctx: &Ctx, x: View) -> Result<Matrix> {

@@ -32,14 +32,18 @@ pub struct Linear {
 impl Linear {
     pub fn new(in_dim: usize, out_dim: usize, vb: VarBuilder) -> CResult<Self> {
         let w = read(&vb, &[out_dim, in_dim], "weight")?;
-        let bias = read(&vb, &[out_dim], "bias")?;
+        Ok(Self::from_weight(&w, read(&vb, &[out_dim], "bias")?, in_dim, out_dim))
+    }
+
+    /// From a weight already read (`[out, in]`, PyTorch layout) and its bias.
+    pub(crate) fn from_weight(w: &[f32], bias: Vec<f32>, in_dim: usize, out_dim: usize) -> Self {
         let mut wt = vec![0.0; in_dim * out_dim];
         for o in 0..out_dim {
             for i in 0..in_dim {
                 wt[i * out_dim + o] = w[o * in_dim + i];
             }
         }
-        Ok(Self { wt, bias, in_dim, out_dim, bf16: false, packed: Default::default() })
+        Self { wt, bias, in_dim, out_dim, bf16: false, packed: Default::default() }
     }
 
     /// This layer, allowed to run in bf16 when the context asks for it.
