@@ -1154,6 +1154,58 @@ def test_hint_adapters_pair_student_layers_with_the_teachers_depth():
     assert hint_loss(student, a.maps, teacher, a.pick).item() < 1e-4
 
 
+def test_serial_hints_pair_each_lighterglue_layer_with_the_transplant_layer_that_ends_it():
+    """With --serial, layer 2i+1 ends LighterGlue's layer i (layer 2i is its self block): only
+    the odd layers are hinted, each by its own teacher layer; an odd depth is refused."""
+    from train import HintAdapters
+    from paraformer_train.model import Matcher
+
+    cfg = {"descriptor_dim": 64, "dim": 96, "num_heads": 1, "num_layers": 12}
+    a = HintAdapters(Matcher(cfg), serial=True)
+    assert a.layers == [1, 3, 5, 7, 9, 11] and a.pick == [0, 1, 2, 3, 4, 5] and len(a.maps) == 6
+    states = [(torch.full((1, 3, 96), float(k)), torch.full((1, 2, 96), float(k))) for k in range(12)]
+    assert [int(x[0, 0, 0]) for x, _ in a.hinted(states)] == a.layers
+    b = HintAdapters(Matcher(cfg | {"num_layers": 8}), serial=True)
+    assert b.layers == [1, 3, 5, 7] and b.pick == [1, 2, 4, 5]
+    assert HintAdapters(Matcher(cfg)).layers == list(range(12))
+    with pytest.raises(ValueError, match="5 layers is odd"):
+        HintAdapters(Matcher(cfg | {"num_layers": 5}), serial=True)
+
+
+def test_hints_join_a_run_at_a_resume_and_keep_their_state_after():
+    """train.py resume_optimizer: a checkpoint trained without --hint resumes with hints as a
+    fresh group after its own state (Adam's moments of the model kept); a hinted checkpoint
+    resumes with the maps' state; a hinted one resumed without hints is refused."""
+    from train import resume_optimizer
+
+    torch.manual_seed(0)
+    net, maps = torch.nn.Linear(4, 3), torch.nn.Linear(3, 2)
+
+    def step(opt, with_maps):
+        opt.zero_grad()
+        out = net(torch.randn(5, 4))
+        (maps(out) if with_maps else out).pow(2).sum().backward()
+        opt.step()
+
+    plain = torch.optim.AdamW([{"params": list(net.parameters()), "lr_scale": 1.0}], lr=1e-2)
+    step(plain, False)
+    saved = plain.state_dict()
+    opt = torch.optim.AdamW([{"params": list(net.parameters()), "lr_scale": 1.0}], lr=1e-2)
+    group = {"params": list(maps.parameters()), "lr_scale": 1.0}
+    assert resume_optimizer(opt, saved, group, had_hints=False) is True
+    assert len(opt.param_groups) == 2 and opt.param_groups[1]["lr_scale"] == 1.0
+    assert torch.equal(opt.state[net.weight]["exp_avg"], plain.state[net.weight]["exp_avg"])
+    assert maps.weight not in opt.state
+    step(opt, True)
+    hinted = opt.state_dict()
+    again = torch.optim.AdamW([{"params": list(net.parameters()), "lr_scale": 1.0}], lr=1e-2)
+    assert resume_optimizer(again, hinted, {"params": list(maps.parameters()), "lr_scale": 1.0}, had_hints=True) is False
+    assert torch.equal(again.state[maps.weight]["exp_avg"], opt.state[maps.weight]["exp_avg"])
+    bare = torch.optim.AdamW([{"params": list(net.parameters()), "lr_scale": 1.0}], lr=1e-2)
+    with pytest.raises(ValueError):
+        resume_optimizer(bare, hinted, None, had_hints=True)
+
+
 def test_teacher_keeps_each_layers_features_for_hints():
     """A teacher built with hidden=True keeps six layers of features per image, the last of which
     gives its own assignment through its last head; a plain teacher keeps none."""

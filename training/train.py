@@ -308,29 +308,56 @@ class LayerHeads(nn.Module):
 
 
 class HintAdapters(nn.Module):
-    """Training-only maps from each student layer's features to the teacher layer it is asked
-    to resemble (``--hint``): student layer k of L takes LighterGlue's layer ceil((k+1)·6/L)
-    (4 layers: 2, 3, 5, 6), so that both nets' depths line up. Never exported."""
+    """Training-only maps from student layers' features to the teacher layer each is asked to
+    resemble (``--hint``): student layer k of L takes LighterGlue's layer ceil((k+1)·6/L)
+    (4 layers: 2, 3, 5, 6), so that both nets' depths line up. ``serial``: the LighterGlue
+    transplant's layout (``--serial``), where layer 2i+1 ends LighterGlue's layer i (its self
+    block is layer 2i): only the odd layers get hints, each from its own teacher layer. Never
+    exported."""
 
     TEACHER_LAYERS, TEACHER_DIM = 6, 96
 
-    def __init__(self, model: Matcher):
+    def __init__(self, model: Matcher, serial: bool = False):
         super().__init__()
         n, c = len(model.layers), model.final_proj.in_features
-        self.pick = [math.ceil((k + 1) * self.TEACHER_LAYERS / n) - 1 for k in range(n)]
-        self.maps = nn.ModuleList([nn.Linear(c, self.TEACHER_DIM) for _ in range(n)])
+        if serial and n % 2:
+            raise ValueError(f"--serial hints pair layers 2i+1 with the teacher's layer i: {n} layers is odd")
+        self.layers = list(range(1, n, 2)) if serial else list(range(n))
+        m = len(self.layers)
+        self.pick = [math.ceil((k + 1) * self.TEACHER_LAYERS / m) - 1 for k in range(m)]
+        self.maps = nn.ModuleList([nn.Linear(c, self.TEACHER_DIM) for _ in range(m)])
+
+    def hinted(self, states: list[tuple[torch.Tensor, torch.Tensor]]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The features of the hinted layers, out of every layer's (``log_assignments`` states)."""
+        return [states[k] for k in self.layers]
 
     @torch.no_grad()
     def fit(self, student: list[tuple[torch.Tensor, torch.Tensor]], teacher: list[tuple[torch.Tensor, torch.Tensor]],
             ridge: float = 1e-3) -> None:
-        """Least-squares maps from one batch's student features to the teacher's picked layers:
-        a start for --init runs, whose trained features random maps would first pull about."""
+        """Least-squares maps from one batch's hinted student features to the teacher's picked
+        layers: a start for --init runs (and hints added at a resume), whose trained features
+        random maps would first pull about."""
         for (x, y), m, t in zip(student, self.maps, self.pick):
             a = torch.cat([x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])]).float()
             b = torch.cat([u.reshape(-1, self.TEACHER_DIM) for u in standardize(*teacher[t])])
             w = ridge_map(a, b, ridge)  # [C + 1, 96]
             m.weight.copy_(w[:-1].T)
             m.bias.copy_(w[-1])
+
+
+def resume_optimizer(opt: torch.optim.Optimizer, saved: dict, hint_group: dict | None, had_hints: bool) -> bool:
+    """Loads a checkpoint's optimiser state into ``opt`` (the model's groups). The hint maps'
+    group (``hint_group``, None without --hint) keeps its state where the checkpoint trained
+    them (``had_hints``) and otherwise joins after the load, fresh: hints added at a resume.
+    True when the maps are new, to be fitted on the first batch. ValueError when the state does
+    not fit the groups (a hinted run resumed without --hint)."""
+    if hint_group is not None and had_hints:
+        opt.add_param_group(hint_group)
+    opt.load_state_dict(saved)
+    if hint_group is not None and not had_hints:
+        opt.add_param_group(hint_group)
+        return True
+    return False
 
 
 def log_assignments(model: Matcher | LightGlueArm, heads: LayerHeads | None, bt: dict, sinkhorn, iters: int,
@@ -716,10 +743,12 @@ def main() -> None:
         sys.exit(f"error: --hint {args.hint:g}: expected a weight >= 0")
     if args.hint > 0 and args.preset != "paraformer":
         sys.exit("error: --hint needs --preset paraformer (per-layer features)")
-    adapters = HintAdapters(model) if args.hint > 0 else None
+    try:
+        adapters = HintAdapters(model, serial=args.serial) if args.hint > 0 else None
+    except ValueError as e:
+        sys.exit(f"error: --hint: {e}")
     fit_adapters = adapters is not None and state is None and bool(args.init)  # on the first batch
-    params = (list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
-              + (list(adapters.parameters()) if adapters is not None else []))
+    params = list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
     groups = [{"params": params, "lr_scale": 1.0}]
     if args.lr_scale_from is not None:
         try:
@@ -727,6 +756,12 @@ def main() -> None:
         except ValueError as e:
             sys.exit(f"error: --lr-scale-from: {e}")
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=args.weight_decay)
+    # The hint maps are a param group of their own, so that hints can join a run at a resume.
+    hint_group = {"params": list(adapters.parameters()), "lr_scale": 1.0} if adapters is not None else None
+    if hint_group is not None and state is None:
+        opt.add_param_group(hint_group)
+    if adapters is not None:
+        params = params + hint_group["params"]
     pairs_seen, steps, cursor, spent, best = 0, 0, 0, 0.0, -1.0
     rng = np.random.default_rng([args.seed, 7])
     if state is not None:
@@ -735,11 +770,13 @@ def main() -> None:
             ema.load_state_dict(state.get("ema", state["model"]))
         if heads is not None:
             heads.load_state_dict(state["heads"])
-        if adapters is not None:
-            if "hint" not in state:
-                sys.exit(f"error: {ckpt} was trained without --hint; its optimiser has no state for the hint maps")
+        if adapters is not None and "hint" in state:
             adapters.load_state_dict(state["hint"])
-        opt.load_state_dict(state["opt"])
+        try:
+            fit_adapters = resume_optimizer(opt, state["opt"], hint_group, "hint" in state)
+        except ValueError as e:
+            sys.exit(f"error: {ckpt}: its optimiser state does not fit this run's parameters ({e}); "
+                     "a run that had --hint keeps it, or restarts with --init")
         pairs_seen, steps, cursor = state["pairs"], state["steps"], state["cursor"]
         spent, best = state["train_s"], state["best"]
         rng.bit_generator.state = state["rng"]
@@ -864,10 +901,11 @@ def main() -> None:
                 loss = sum(losses) / len(losses)
             if adapters is not None:
                 features = teacher.hidden()
+                hinted = adapters.hinted(states)
                 if fit_adapters:
-                    adapters.fit(states, features)
+                    adapters.fit(hinted, features)
                     fit_adapters = False
-                hint = hint_loss(states, adapters.maps, features, adapters.pick)
+                hint = hint_loss(hinted, adapters.maps, features, adapters.pick)
                 running_hint.append(hint.item())
                 loss = loss + args.hint * hint
             opt.zero_grad(set_to_none=True)
