@@ -38,6 +38,7 @@ from paraformer_train.teacher import LighterGlueTeacher, distillation_loss, hint
 from paraformer_train.model import (Matcher, extract_matches, log_optimal_transport,  # noqa: E402
                                     log_optimal_transport_last_grad, pair_scores)
 from paraformer_train.lightglue_arm import LightGlueArm, is_arm  # noqa: E402
+from paraformer_train.lighterglue_transplant import self_closed  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare", "stage_dims", "pooling",
@@ -322,7 +323,7 @@ class HintAdapters(nn.Module):
         n, c = len(model.layers), model.final_proj.in_features
         if serial and n % 2:
             raise ValueError(f"--serial hints pair layers 2i+1 with the teacher's layer i: {n} layers is odd")
-        self.layers = list(range(1, n, 2)) if serial else list(range(n))
+        self.layers = [k for k in range(n) if self_closed(k)] if serial else list(range(n))
         m = len(self.layers)
         self.pick = [math.ceil((k + 1) * self.TEACHER_LAYERS / m) - 1 for k in range(m)]
         self.maps = nn.ModuleList([nn.Linear(c, self.TEACHER_DIM) for _ in range(m)])
@@ -345,15 +346,17 @@ class HintAdapters(nn.Module):
             m.bias.copy_(w[-1])
 
 
-def resume_optimizer(opt: torch.optim.Optimizer, saved: dict, hint_group: dict | None, had_hints: bool) -> bool:
-    """Loads a checkpoint's optimiser state into ``opt`` (the model's groups). The hint maps'
-    group (``hint_group``, None without --hint) keeps its state where the checkpoint trained
-    them (``had_hints``) and otherwise joins after the load, fresh: hints added at a resume.
-    True when the maps are new, to be fitted on the first batch. ValueError when the state does
-    not fit the groups (a hinted run resumed without --hint)."""
+def resume_optimizer(opt: torch.optim.Optimizer, saved: dict | None, hint_group: dict | None,
+                     had_hints: bool) -> bool:
+    """Loads a checkpoint's optimiser state (``saved``; None on a fresh start) into ``opt`` (the
+    model's groups). The hint maps' group (``hint_group``, None without --hint) keeps its state
+    where the checkpoint trained them (``had_hints``) and otherwise joins after the load, fresh:
+    hints added at a resume, or at the start. True when the maps are new. ValueError when the
+    state does not fit the groups (a hinted run resumed without --hint)."""
     if hint_group is not None and had_hints:
         opt.add_param_group(hint_group)
-    opt.load_state_dict(saved)
+    if saved is not None:
+        opt.load_state_dict(saved)
     if hint_group is not None and not had_hints:
         opt.add_param_group(hint_group)
         return True
@@ -747,7 +750,6 @@ def main() -> None:
         adapters = HintAdapters(model, serial=args.serial) if args.hint > 0 else None
     except ValueError as e:
         sys.exit(f"error: --hint: {e}")
-    fit_adapters = adapters is not None and state is None and bool(args.init)  # on the first batch
     params = list(model.parameters()) + (list(heads.parameters()) if heads is not None else [])
     groups = [{"params": params, "lr_scale": 1.0}]
     if args.lr_scale_from is not None:
@@ -758,10 +760,15 @@ def main() -> None:
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=args.weight_decay)
     # The hint maps are a param group of their own, so that hints can join a run at a resume.
     hint_group = {"params": list(adapters.parameters()), "lr_scale": 1.0} if adapters is not None else None
-    if hint_group is not None and state is None:
-        opt.add_param_group(hint_group)
     if adapters is not None:
         params = params + hint_group["params"]
+    try:  # new maps are fitted on the first batch where they meet trained features (--init, a resume)
+        fit_adapters = resume_optimizer(opt, state["opt"] if state is not None else None, hint_group,
+                                        state is not None and "hint" in state)
+    except ValueError as e:
+        sys.exit(f"error: {ckpt}: its optimiser state does not fit this run's parameters ({e}); "
+                 "a run that had --hint keeps it, or restarts with --init")
+    fit_adapters = fit_adapters and (state is not None or bool(args.init))
     pairs_seen, steps, cursor, spent, best = 0, 0, 0, 0.0, -1.0
     rng = np.random.default_rng([args.seed, 7])
     if state is not None:
@@ -772,11 +779,6 @@ def main() -> None:
             heads.load_state_dict(state["heads"])
         if adapters is not None and "hint" in state:
             adapters.load_state_dict(state["hint"])
-        try:
-            fit_adapters = resume_optimizer(opt, state["opt"], hint_group, "hint" in state)
-        except ValueError as e:
-            sys.exit(f"error: {ckpt}: its optimiser state does not fit this run's parameters ({e}); "
-                     "a run that had --hint keeps it, or restarts with --init")
         pairs_seen, steps, cursor = state["pairs"], state["steps"], state["cursor"]
         spent, best = state["train_s"], state["best"]
         rng.bit_generator.state = state["rng"]

@@ -117,13 +117,19 @@ def transplant_state(model) -> dict:
     return paraformer_state_from_arm(lighterglue_state(), model.state_dict())
 
 
+def self_closed(layer: int) -> bool:
+    """The serial layout, in one place: layer 2i+1 closes its self branch (it is LighterGlue
+    layer i's cross block), layer 2i its cross branch (it is that layer's self block)."""
+    return layer % 2 == 1
+
+
 def alternate_closed_columns(model) -> list[tuple[torch.nn.Parameter, slice]]:
     """The serial layout of any ParaFormer: each layer's ``fuse.0`` weight and the message
     columns of the branch it does not use (layer 2i: cross, 2i+1: self). Kept at zero, they
     make every layer add exactly nothing from that branch, which the engine then skips
     (``crates/paraformer/src/layers.rs``: a branch whose fuse columns are all zero)."""
     c = model.config["dim"]
-    return [(layer.fuse[0].weight, slice(2 * c, 3 * c) if i % 2 == 0 else slice(c, 2 * c))
+    return [(layer.fuse[0].weight, slice(c, 2 * c) if self_closed(i) else slice(2 * c, 3 * c))
             for i, layer in enumerate(model.layers)]
 
 
@@ -153,8 +159,6 @@ def close_branches(model) -> list[tuple[torch.nn.Parameter, slice]]:
     closed branch (``ParallelLayer.branches``), which computes the same and trains faster.
     Returns the closed columns."""
     columns = closed_columns(model)
-    c = model.config["dim"]
-    for layer, (_, cols) in zip(model.layers, columns):
-        self_closed = cols.start == c
-        layer.branches = (not self_closed, self_closed)
+    for i, layer in enumerate(model.layers):
+        layer.branches = (not self_closed(i), self_closed(i))
     return columns
