@@ -16,10 +16,12 @@ switches (qkv, merge, attention_weights: turned off) or ``serial``: the weights 
 --serial`` (LighterGlue's layout: even layers' cross and odd layers' self messages meet zero
 fuse columns, and the engine skips those attentions), e.g. ``--config
 transplant=96,1,12,qkv,merge,serial``. ``u:`` makes it the ParaFormer-U of
-outer width DIM that ``train.py --preset paraformer_u`` trains (its stage depths are fixed,
-DEPTH is not read), whose OPTIONs may also be a pooling (attentional, gpool, random: its
-``--pooling``) and ``dims=C0/C1/C2/C3/C4`` (its ``--stage-dims``), e.g. ``--config
-w96=96,3,4 --config u96=u:96,3,4 --config u96g=u:96,3,4,gpool,dims=96/96/48/96/96``.
+outer width DIM that ``train.py --preset paraformer_u`` trains (DEPTH is not read), whose
+OPTIONs may also be a pooling (attentional, gpool, random: its ``--pooling``),
+``dims=C0/C1/C2/C3/C4`` (its ``--stage-dims``) and ``depths=L0/L1/L2/L3/L4`` (its
+``--stage-depths``; ``serial`` restarts the layout in every stage), e.g. ``--config
+w96=96,3,4 --config u96=u:96,3,4 --config u96g=u:96,3,4,gpool,dims=96/96/48/96/96 --config
+u_transplant=u:96,1,0,qkv,merge,gpool,dims=96/96/96/96/96,depths=4/2/2/2/2,serial``.
 Sinkhorn runs the shipped model's iterations unless --sinkhorn says. Latency does not
 depend on the weights' values (the engine has no data-dependent paths besides the match
 count).
@@ -60,13 +62,19 @@ def parse_config(text: str) -> tuple[str, dict]:
         raise SystemExit(f"error: --config {text!r}: DIM must be a multiple of HEADS")
     from train import model_config  # training/train.py: the config a run trains (imports torch)
 
-    options = {"unshare": [], "pooling": None, "stage_dims": None}
+    options = {"unshare": [], "pooling": None, "stage_dims": None, "stage_depths": None}
     for opt in fields[3:]:
         if opt == "serial":
-            if u:
-                raise SystemExit(f"error: --config {text!r}: serial weights are a ParaFormer's, not a ParaFormer-U's")
+            continue
         elif opt in ("attentional", "gpool", "random"):
             options["pooling"] = opt
+        elif opt.startswith("depths="):
+            if not u:
+                raise SystemExit(f"error: --config {text!r}: depths= is a ParaFormer-U's (u:)")
+            try:
+                options["stage_depths"] = [int(v) for v in opt.removeprefix("depths=").split("/")]
+            except ValueError:
+                raise SystemExit(f"error: --config {text!r}: {opt!r}: expected depths=L0/L1/L2/L3/L4 of integers") from None
         elif opt.startswith("dims="):
             try:
                 options["stage_dims"] = [int(v) for v in opt.removeprefix("dims=").split("/")]

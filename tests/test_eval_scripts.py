@@ -269,9 +269,21 @@ def test_config_latency_parses_paraformer_and_u_configs():
         assert not w[0][:, 64:].any() and w[0][:, 32:64].abs().sum() > 0
         assert not w[1][:, 32:64].any() and w[1][:, 64:].abs().sum() > 0
         assert torch.equal(w[2][:, 64:], torch.zeros(64, 32))
+        # A U's serial layout restarts in every stage.
+        text = "u=u:96,1,0,qkv,merge,gpool,dims=96/96/96/96/96,depths=4/2/2/2/2,serial"
+        _, cfg = mod.parse_config(text)
+        assert mod.is_serial(text) and cfg["stage_depths"] == [4, 2, 2, 2, 2]
+        u = Matcher(cfg)
+        zero_closed(alternate_closed_columns(u))
+        for stage in u.stages:
+            first, second = (layer.fuse[0].weight.detach() for layer in stage.layers[:2])
+            assert not first[:, 192:].any() and first[:, 96:192].abs().sum() > 0
+            assert not second[:, 96:192].any() and second[:, 192:].abs().sum() > 0
         for spec, needle in (("u=u:32,32,4", "stage widths [32, 48, 16, 48, 32]"), ("x=96,5,4", "multiple of HEADS"),
                              ("x=96,3", "expected NAME="), ("x=u:a,3,4", "must be integers"),
-                             ("x=u:96,3,4,dims=96/x", "dims=C0/C1/C2/C3/C4"), ("x=96,3,4,gpool", "ParaFormer-U's"), ("x=u:96,3,4,serial", "not a ParaFormer-U's"),
+                             ("x=u:96,3,4,dims=96/x", "dims=C0/C1/C2/C3/C4"), ("x=96,3,4,gpool", "ParaFormer-U's"),
+                             ("x=96,3,4,depths=2/2/2/2/2", "depths= is a ParaFormer-U's"),
+                             ("x=u:96,3,4,depths=2/x", "depths=L0/L1/L2/L3/L4"),
                              ("x=u:96,3,4,dims=96/96/96", "five widths"), ("x=96,3,4,sideways", "unknown sharing")):
             with pytest.raises(SystemExit, match=re.escape(needle)):
                 mod.parse_config(spec)

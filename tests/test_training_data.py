@@ -6,6 +6,7 @@ rule) and a hand-built RGB-D scene with known geometry.
 """
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -1493,6 +1494,83 @@ def test_serial_transplant_keeps_its_closed_branches_and_the_engine_skips_them(t
     with torch.no_grad():
         ref = model(one)["log_assignment"][0].numpy()
     assert np.abs(out["log_assignment"] - ref).max() < 1e-3
+
+
+def test_lighterglue_transplant_into_a_paraformer_u_computes_lighterglue_stopped_after_its_outer_stages(tmp_path):
+    """`--init lighterglue` of a ParaFormer-U (stages of width 96, depths 4 2 2 2 2, gpool): the
+    unpoolings start at zero, so the U computes stage 0 then stage 4, which hold LighterGlue's
+    layers 0-1 and 2: the same as the 6-layer ParaFormer transplant (LighterGlue stopped after
+    three layers, checked against the arm above), log assignment and all. Its serial layout
+    restarts in every stage; the engine, skipping the closed branches, gives PyTorch's log
+    assignment once every weight is trained away from the start. Configs the weights cannot
+    start are refused by name."""
+    import paraformer
+    from train import model_config
+    from paraformer_train.io import save_safetensors
+    from paraformer_train.lightglue_arm import LightGlueArm
+    from paraformer_train.lighterglue_transplant import (SCORE_SCALE, check_transplant_config, close_branches,
+                                                         paraformer_state_from_arm, paraformer_u_state_from_arm,
+                                                         u_stage_layers, zero_closed)
+    from paraformer_train.model import Matcher
+
+    assert u_stage_layers([4, 2, 2, 2, 2]) == [range(0, 2), range(2, 3), range(3, 4), range(3, 4), range(2, 3)]
+    torch.manual_seed(5)
+    arm = LightGlueArm(model_config({"preset": "lightglue_arm", "dim": 96, "heads": 1, "depth": 6, "sinkhorn": 20})).eval()
+    for p in arm.parameters():
+        p.data.add_(0.05 * torch.randn_like(p))
+    u_args = {"preset": "paraformer_u", "dim": 96, "heads": 1, "depth": 0, "sinkhorn": 20, "unshare": ["qkv", "merge"],
+              "stage_dims": [96] * 5, "stage_depths": [4, 2, 2, 2, 2], "pooling": "gpool"}
+    cfg = model_config(u_args)
+    check_transplant_config(cfg)
+    u = Matcher(cfg).eval()
+    u.load_state_dict(paraformer_u_state_from_arm(arm.state_dict(), u.state_dict(), cfg["stage_depths"], bin_score=2.0,
+                                                  score_scale=SCORE_SCALE))
+    p6_cfg = model_config({"preset": "paraformer", "dim": 96, "heads": 1, "depth": 6, "sinkhorn": 20,
+                           "unshare": ["qkv", "merge"]})
+    p6 = Matcher(p6_cfg).eval()
+    p6.load_state_dict(paraformer_state_from_arm(arm.state_dict(), p6.state_dict(), bin_score=2.0))
+    data = _random_pair(b=2, m=40, n=31, seed=6)
+    for i in (0, 1):  # inside the 320 x 240 image, as the engine checks
+        data[f"keypoints{i}"] = data[f"keypoints{i}"] * torch.tensor([1.0, 0.75])
+    with torch.no_grad():
+        assert torch.allclose(u(data)["log_assignment"], p6(data)["log_assignment"], atol=1e-5)
+        # the inner stages start as LighterGlue's next layers: stage 2's first layer is layer 3's self block
+        assert torch.equal(u.stages[2].layers[0].attn.self_proj[0].weight, arm.self_blocks[3].qkv.weight.chunk(3, 0)[0])
+        assert not u.unpools[0].proj.weight.any() and torch.equal(u.pools[1].proj.weight, torch.eye(96))
+
+    # Serial: every stage alternates self and cross from its own first layer.
+    closed = close_branches(u)
+    assert [layer.branches for stage in u.stages for layer in stage.layers] == \
+        [(True, False), (False, True)] * 2 + [(True, False), (False, True)] * 4
+    with torch.no_grad():  # away from the start: inner stages and unpoolings carry weight
+        for p in u.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    zero_closed(closed)
+    u_full = Matcher(cfg).eval()
+    u_full.load_state_dict(u.state_dict())
+    with torch.no_grad():
+        ref = u_full(data)["log_assignment"]
+        assert torch.allclose(u(data)["log_assignment"], ref, atol=1e-5)
+        assert not torch.allclose(ref, p6(data)["log_assignment"], atol=1e-2)
+    path = tmp_path / "u_serial.safetensors"
+    save_safetensors(u_full, str(path))
+    engine = paraformer.Matcher.from_file(path)
+    out = engine.match(data["keypoints0"][0].numpy(), data["descriptors0"][0].numpy(), data["keypoints1"][0].numpy(),
+                       data["descriptors1"][0].numpy(), scores0=data["scores0"][0].numpy(),
+                       scores1=data["scores1"][0].numpy(), size0=(320.0, 240.0), size1=(320.0, 240.0),
+                       return_log_assignment=True)
+    assert np.abs(out["log_assignment"] - ref[0].numpy()).max() < 1e-3
+
+    for change, needle in (({"pooling": "attentional"}, "'pooling': ('attentional', 'gpool or random')"),
+                           ({"stage_depths": [4, 3, 2, 2, 2]}, "'stage_depths': ([4, 3, 2, 2, 2], 'five even"),
+                           ({"stage_depths": [8, 4, 2, 2, 2]}, "'stage_depths': ([8, 4, 2, 2, 2], 'five even"),
+                           ({"stage_dims": [96, 128, 96, 128, 96]}, "'stage_dims': ([96, 128, 96, 128, 96], [96, 96, 96, 96, 96])")):
+        with pytest.raises(ValueError, match=re.escape(needle)):
+            check_transplant_config(model_config(u_args | change))
+    with pytest.raises(ValueError, match=re.escape("stage_depths [2, 2, 2, 2]: expected five layer counts")):
+        model_config(u_args | {"stage_depths": [2, 2, 2, 2]})
+    with pytest.raises(ValueError, match="stage_dims, stage_depths and pooling are ParaFormer-U's"):
+        model_config({"preset": "paraformer", "dim": 96, "heads": 1, "depth": 4, "sinkhorn": 20, "stage_depths": [2] * 5})
 
 
 def test_holdout_peers_scores_a_training_checkpoint(tmp_path):

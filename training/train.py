@@ -41,12 +41,13 @@ from paraformer_train.lightglue_arm import LightGlueArm, is_arm  # noqa: E402
 from paraformer_train.lighterglue_transplant import self_closed  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare", "stage_dims", "pooling",
-              "self_rotary")
+MODEL_ARGS = ("preset", "dim", "heads", "depth", "sinkhorn", "seed", "unshare", "stage_dims", "stage_depths",
+              "pooling", "self_rotary")
 # A resume refuses a change of these (the model's, and --layer-loss, whose heads are in the
 # optimiser's state); runs saved before an argument existed trained with its default here.
 RESUME_ARGS = MODEL_ARGS + ("layer_loss", "lr_scale_from", "serial")
-RESUME_DEFAULTS = {"unshare": [], "layer_loss": False, "stage_dims": None, "pooling": None, "lr_scale_from": None,
+RESUME_DEFAULTS = {"unshare": [], "layer_loss": False, "stage_dims": None, "stage_depths": None, "pooling": None,
+                   "lr_scale_from": None,
                    "self_rotary": None, "serial": False}
 SHARING = ("qkv", "merge", "attention_weights")
 
@@ -109,9 +110,13 @@ def model_config(args: dict) -> dict:
     """The model config of a run from its arguments (``MODEL_ARGS``; as saved in checkpoints).
     ``unshare`` lists the parallel layers' sharing switches turned off (SPEC §5)."""
     cfg = preset(args["preset"], args["dim"], args["depth"], args["heads"]) | {"sinkhorn_iterations": args["sinkhorn"]}
-    dims, pooling = args.get("stage_dims"), args.get("pooling")
-    if (dims or pooling) and cfg["model"] != "paraformer_u":
-        raise ValueError(f"stage_dims and pooling are ParaFormer-U's; the {args['preset']!r} preset has neither")
+    dims, depths, pooling = args.get("stage_dims"), args.get("stage_depths"), args.get("pooling")
+    if (dims or depths or pooling) and cfg["model"] != "paraformer_u":
+        raise ValueError(f"stage_dims, stage_depths and pooling are ParaFormer-U's; the {args['preset']!r} preset has none")
+    if depths:
+        if len(depths) != 5 or any(not isinstance(d, int) or d < 1 for d in depths):
+            raise ValueError(f"stage_depths {depths}: expected five layer counts >= 1")
+        cfg["stage_depths"] = list(depths)
     if dims:
         if len(dims) != 5 or dims[0] != args["dim"] or dims[4] != args["dim"]:
             raise ValueError(f"stage_dims {dims}: expected five widths that begin and end with dim {args['dim']}")
@@ -562,6 +567,8 @@ def main() -> None:
     ap.add_argument("--stage-dims", type=int, nargs=5, default=None, metavar="C",
                     help="ParaFormer-U: the five stage widths (default dim x 256,384,128,384,256 / 256); "
                          "the first and last must equal --dim")
+    ap.add_argument("--stage-depths", type=int, nargs=5, default=None, metavar="L",
+                    help="ParaFormer-U: the five stages' layer counts (default 1 1 2 1 1; the SPEC's 2 1 2 1 2)")
     ap.add_argument("--pooling", choices=["attentional", "gpool", "random"], default=None,
                     help="ParaFormer-U: the pooling (SPEC §7; default attentional)")
     ap.add_argument("--unshare", nargs="*", choices=SHARING, default=[],
@@ -569,8 +576,9 @@ def main() -> None:
                          "or cross-attention weights); more parameters at little CPU cost")
     ap.add_argument("--serial", action="store_true",
                     help="the LighterGlue transplant's layout (--init lighterglue, or a checkpoint of one) stays "
-                         "serial: layer 2i's cross-branch and layer 2i+1's self-branch fuse columns are zeroed and "
-                         "kept at zero, so each layer computes one attention and the engine skips the other")
+                         "serial: layer 2i's cross-branch and layer 2i+1's self-branch fuse columns (counted in "
+                         "each stage of a ParaFormer-U) are zeroed and kept at zero, so each layer computes one "
+                         "attention and the engine skips the other")
     ap.add_argument("--layer-loss", action="store_true",
                     help="ParaFormer: average the loss over every layer's assignment (training-only heads)")
     ap.add_argument("--phase-gain", type=float, nargs=2, default=None, metavar=("LO", "HI"),
@@ -653,7 +661,9 @@ def main() -> None:
                          "checkpoint: its EMA weights), e.g. to fine-tune the GPU run on real pairs; a "
                          "ParaFormer init with fewer layers than --depth is grown by identity layers; 'lighterglue': LighterGlue's "
                          "trained weights, for the lightglue_arm diagnostic or a SPEC ParaFormer --dim 96 --heads 1 "
-                         "--depth 2k --unshare qkv merge (k <= 6: LighterGlue's first k layers) (paraformer_train/lighterglue_transplant.py)")
+                         "--depth 2k --unshare qkv merge (k <= 6: LighterGlue's first k layers), or a ParaFormer-U --dim 96 --heads 1 "
+                         "--stage-dims 96 96 96 96 96 --stage-depths (even) --pooling gpool --unshare qkv merge "
+                         "(paraformer_train/lighterglue_transplant.py)")
     ap.add_argument("--grow-copy", type=float, default=None, metavar="SCALE",
                     help="with a grown --init: the new layers start as copies of the init's last layers, "
                          "their last fuse Linear scaled by SCALE (e.g. 0.1), instead of as identity layers")
@@ -740,7 +750,7 @@ def main() -> None:
         except ValueError as e:
             sys.exit(f"error: --init lighterglue: {e}; or the diagnostic --preset lightglue_arm --dim 96 --heads 1 --depth 6")
         if args.self_rotary is not None:
-            sys.exit("error: --init lighterglue starts a SPEC ParaFormer; --self-rotary is outside the SPEC")
+            sys.exit("error: --init lighterglue starts a SPEC model; --self-rotary is outside the SPEC")
     heads = LayerHeads(model) if args.layer_loss and not is_arm(model) else None
     if args.hint < 0:
         sys.exit(f"error: --hint {args.hint:g}: expected a weight >= 0")
