@@ -100,21 +100,28 @@ def paraformer_state_from_arm(arm: dict, own: dict, bin_score: float = BIN_SCORE
     ``lightglue_arm`` names (``state_from_lighterglue``), written in as the module docstring says.
     Wave-PE keeps its fresh weights except the last Linear, which is zeroed; ``final_proj`` is
     scaled so that Sinkhorn's scores are ``score_scale`` times LightGlue's similarities."""
-    out = {k: v.clone() for k, v in own.items()}
+    out, put = _writer(own, "ParaFormer")
     c = arm["input_proj.weight"].shape[0]
     depth = sum(1 for k in own if k.endswith(".fuse.0.weight")) // 2
-
-    def put(key: str, value: torch.Tensor) -> None:
-        if key not in out:
-            raise KeyError(f"transplant: the ParaFormer has no tensor {key}")
-        if out[key].shape != value.shape:
-            raise ValueError(f"transplant: {key} is {tuple(out[key].shape)}, LighterGlue gives {tuple(value.shape)}")
-        out[key] = value.detach().clone()
-
     _put_encoder_and_head(put, out, arm, depth - 1, bin_score, score_scale)
     for i in range(depth):
         _put_lighterglue_layer(put, arm, i, f"layers.{2 * i}.", f"layers.{2 * i + 1}.", depth - 1, c)
     return out
+
+
+def _writer(own: dict, model: str):
+    """A copy of ``own`` and ``put(key, value)``, which overwrites one of its tensors and
+    refuses, by name, a key it lacks or a shape that differs."""
+    out = {k: v.clone() for k, v in own.items()}
+
+    def put(key: str, value: torch.Tensor) -> None:
+        if key not in out:
+            raise KeyError(f"transplant: the {model} has no tensor {key}")
+        if out[key].shape != value.shape:
+            raise ValueError(f"transplant: {key} is {tuple(out[key].shape)}, LighterGlue gives {tuple(value.shape)}")
+        out[key] = value.detach().clone()
+
+    return out, put
 
 
 def _put_encoder_and_head(put, out: dict, arm: dict, head: int, bin_score: float, score_scale: float) -> None:
@@ -176,17 +183,9 @@ def paraformer_u_state_from_arm(arm: dict, own: dict, depths: list[int], bin_sco
     and the unpoolings' zero: it computes LighterGlue's layers of stages 0 and 4, and the inner
     stages join as training opens the unpoolings. Encoder, head and dustbin as
     ``paraformer_state_from_arm``, the head that of stage 4's last LighterGlue layer."""
-    out = {k: v.clone() for k, v in own.items()}
+    out, put = _writer(own, "ParaFormer-U")
     c = arm["input_proj.weight"].shape[0]
     ranges = u_stage_layers(depths)
-
-    def put(key: str, value: torch.Tensor) -> None:
-        if key not in out:
-            raise KeyError(f"transplant: the ParaFormer-U has no tensor {key}")
-        if out[key].shape != value.shape:
-            raise ValueError(f"transplant: {key} is {tuple(out[key].shape)}, LighterGlue gives {tuple(value.shape)}")
-        out[key] = value.detach().clone()
-
     last = max(r.stop for r in ranges) - 1
     _put_encoder_and_head(put, out, arm, ranges[4].stop - 1, bin_score, score_scale)
     for s, layers in enumerate(ranges):
