@@ -1599,3 +1599,44 @@ def test_holdout_peers_scores_a_training_checkpoint(tmp_path):
     for spec, needle in ((f"arm={path}", "LABEL=PATH@THRESHOLD"), (f"arm={tmp_path / 'none.pt'}@0.1", "no such file")):
         with pytest.raises(SystemExit, match=needle):
             holdout_peers.checkpoint_spec(spec)
+
+
+def test_a_resume_with_other_learning_rate_groups_keeps_each_parameters_adam_state():
+    """train.py regrouped_state: a checkpoint whose optimiser had one group resumes in a run that
+    moves a ParaFormer-U's unpoolings to a faster group (lr_scale_unpool_groups): every
+    parameter keeps its moments, found by name, and the groups take this run's rates; a state
+    of other parameters is refused by name, and the faster group needs a ParaFormer-U."""
+    from train import lr_scale_unpool_groups, model_config, resume_optimizer
+    from paraformer_train.model import Matcher
+
+    torch.manual_seed(0)
+    u = Matcher(model_config({"preset": "paraformer_u", "dim": 32, "heads": 1, "stage_dims": [32] * 5,
+                              "stage_depths": [2] * 5, "pooling": "gpool", "unshare": [], "depth": 10,
+                              "sinkhorn": 10}))
+    names = {id(p): n for n, p in u.named_parameters()}
+    params = list(u.parameters())
+    plain = torch.optim.AdamW([{"params": params, "lr_scale": 1.0}], lr=1e-2)
+    for p in params:
+        p.grad = torch.randn_like(p)
+    plain.step()
+    saved, saved_names = plain.state_dict(), [[names[id(p)] for p in params]]
+    groups = lr_scale_unpool_groups(u, [{"params": params, "lr_scale": 1.0}], 10.0)
+    assert [g["lr_scale"] for g in groups] == [1.0, 10.0]
+    assert {id(p) for p in groups[1]["params"]} == {id(p) for p in u.unpools.parameters()}
+    opt = torch.optim.AdamW(groups, lr=1e-2)
+    assert resume_optimizer(opt, saved, None, False, names, saved_names) is False
+    assert [g["lr_scale"] for g in opt.param_groups] == [1.0, 10.0]
+    for p in params:
+        assert torch.equal(opt.state[p]["exp_avg"], plain.state[p]["exp_avg"]), names[id(p)]
+    same = torch.optim.AdamW([{"params": params, "lr_scale": 1.0}], lr=1e-2)
+    resume_optimizer(same, saved, None, False, names, saved_names)
+    assert torch.equal(same.state[params[0]]["exp_avg_sq"], plain.state[params[0]]["exp_avg_sq"])
+    other = torch.optim.AdamW(groups, lr=1e-2)
+    with pytest.raises(ValueError, match="not in this run"):
+        resume_optimizer(other, saved, None, False, names, [[n.replace("unpools", "gone") for n in saved_names[0]]])
+    with pytest.raises(ValueError, match="needs a ParaFormer-U"):
+        lr_scale_unpool_groups(Matcher(model_config({"preset": "paraformer", "dim": 32, "heads": 1, "depth": 2,
+                                                     "unshare": [], "sinkhorn": 10})),
+                               [{"params": params}], 10.0)
+    with pytest.raises(ValueError, match="SCALE > 0"):
+        lr_scale_unpool_groups(u, [{"params": params}], 0.0)

@@ -277,6 +277,19 @@ def u_from_paraformer(model: Matcher, state: dict, outer: tuple[int, int] = (0, 
     return fresh
 
 
+def lr_scale_unpool_groups(model: Matcher, groups: list[dict], scale: float) -> list[dict]:
+    """``groups`` with a ParaFormer-U's unpooling projections moved to a group of their own at
+    ``scale`` × the rate: started at zero by a transplant, under Adam's steps of about the rate
+    they open far slower than the inner stages, whose work they carry, could use."""
+    if not hasattr(model, "unpools"):
+        raise ValueError("needs a ParaFormer-U (preset paraformer_u)")
+    if not scale > 0:
+        raise ValueError(f"expected SCALE > 0, got {scale:g}")
+    fast = {id(p) for p in model.unpools.parameters()}
+    kept = [g | {"params": [p for p in g["params"] if id(p) not in fast]} for g in groups]
+    return kept + [{"params": [p for p in model.unpools.parameters()], "lr_scale": float(scale)}]
+
+
 def lr_scale_groups(model: Matcher, params: list, first: float, scale: float) -> list[dict]:
     """Optimiser groups in which ParaFormer layers ``first`` onwards learn at ``scale`` × the
     rate: layers grown as identity by ``--init`` start at zero and, under Adam's steps of about
@@ -351,16 +364,41 @@ class HintAdapters(nn.Module):
             m.bias.copy_(w[-1])
 
 
+def regrouped_state(opt: torch.optim.Optimizer, saved: dict, saved_names: list[list[str]],
+                    names: dict[int, str]) -> dict:
+    """``saved`` (an optimiser state whose groups held the parameters named ``saved_names``)
+    rearranged for ``opt``'s groups: each parameter keeps its Adam moments, found by name, and
+    each group this run's hyper-parameters (its ``lr_scale``). Unchanged where the groups are
+    the same. ValueError when the two hold different parameters."""
+    now = [[names[id(p)] for p in g["params"]] for g in opt.param_groups]
+    if now == saved_names:
+        return saved
+    flat_saved, flat_now = [n for g in saved_names for n in g], [n for g in now for n in g]
+    if sorted(flat_saved) != sorted(flat_now):
+        extra, missing = set(flat_saved) - set(flat_now), set(flat_now) - set(flat_saved)
+        raise ValueError(f"saved parameters not in this run: {sorted(extra)[:3]}, "
+                         f"this run's not saved: {sorted(missing)[:3]}")
+    at = {n: i for i, n in enumerate(flat_saved)}
+    mine = opt.state_dict()  # this run's groups; parameters numbered in group order
+    mine["state"] = {j: saved["state"][at[n]] for j, n in enumerate(flat_now) if at[n] in saved["state"]}
+    return mine
+
+
 def resume_optimizer(opt: torch.optim.Optimizer, saved: dict | None, hint_group: dict | None,
-                     had_hints: bool) -> bool:
+                     had_hints: bool, names: dict[int, str] | None = None,
+                     saved_names: list[list[str]] | None = None) -> bool:
     """Loads a checkpoint's optimiser state (``saved``; None on a fresh start) into ``opt`` (the
     model's groups). The hint maps' group (``hint_group``, None without --hint) keeps its state
     where the checkpoint trained them (``had_hints``) and otherwise joins after the load, fresh:
-    hints added at a resume, or at the start. True when the maps are new. ValueError when the
-    state does not fit the groups (a hinted run resumed without --hint)."""
+    hints added at a resume, or at the start. Given the parameters' ``names`` (by id) and the
+    checkpoint's groups by name (``saved_names``), a run resumed with other learning-rate groups
+    (--lr-scale-unpool) keeps each parameter's state. True when the maps are new. ValueError
+    when the state does not fit the groups (a hinted run resumed without --hint)."""
     if hint_group is not None and had_hints:
         opt.add_param_group(hint_group)
     if saved is not None:
+        if names is not None and saved_names is not None:
+            saved = regrouped_state(opt, saved, saved_names, names)
         opt.load_state_dict(saved)
     if hint_group is not None and not had_hints:
         opt.add_param_group(hint_group)
@@ -599,6 +637,8 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=5e-4)
     ap.add_argument("--lr-scale-from", type=float, nargs=2, default=None, metavar=("LAYER", "SCALE"),
                     help="ParaFormer layers LAYER onwards learn at SCALE x --lr (e.g. layers grown by --init)")
+    ap.add_argument("--lr-scale-unpool", type=float, default=None, metavar="SCALE",
+                    help="a ParaFormer-U's unpooling projections learn at SCALE x --lr (may change at a resume)")
     ap.add_argument("--warmup", type=int, default=4000, help="warm-up pairs")
     ap.add_argument("--weight-decay", type=float, default=0.01)
     ap.add_argument("--ema", type=float, default=0.999,
@@ -767,14 +807,29 @@ def main() -> None:
             groups = lr_scale_groups(model, params, *args.lr_scale_from)
         except ValueError as e:
             sys.exit(f"error: --lr-scale-from: {e}")
+    base_groups = groups  # as runs saved before checkpoints named their groups had them
+    if args.lr_scale_unpool is not None:
+        try:
+            groups = lr_scale_unpool_groups(model, groups, args.lr_scale_unpool)
+        except ValueError as e:
+            sys.exit(f"error: --lr-scale-unpool: {e}")
     opt = torch.optim.AdamW(groups, lr=args.lr, weight_decay=args.weight_decay)
+    names = {id(p): n for n, p in model.named_parameters()}
+    names |= {id(p): "heads." + n for n, p in heads.named_parameters()} if heads is not None else {}
+    names |= {id(p): "hint." + n for n, p in adapters.named_parameters()} if adapters is not None else {}
     # The hint maps are a param group of their own, so that hints can join a run at a resume.
     hint_group = {"params": list(adapters.parameters()), "lr_scale": 1.0} if adapters is not None else None
     if adapters is not None:
         params = params + hint_group["params"]
     try:  # new maps are fitted on the first batch where they meet trained features (--init, a resume)
+        had_hints = state is not None and "hint" in state
+        saved_names = None
+        if state is not None:
+            saved_names = state.get("opt_names") or (
+                [[names[id(p)] for p in g["params"]] for g in base_groups]
+                + ([[names[id(p)] for p in hint_group["params"]]] if had_hints and hint_group else []))
         fit_adapters = resume_optimizer(opt, state["opt"] if state is not None else None, hint_group,
-                                        state is not None and "hint" in state)
+                                        had_hints, names, saved_names)
     except ValueError as e:
         sys.exit(f"error: {ckpt}: its optimiser state does not fit this run's parameters ({e}); "
                  "a run that had --hint keeps it, or restarts with --init")
@@ -876,7 +931,8 @@ def main() -> None:
     def save() -> None:
         blob = {"model": model.state_dict(), "ema": ema.state_dict(), "opt": opt.state_dict(), "pairs": pairs_seen, "steps": steps,
                 "cursor": reader.low_water(), "train_s": spent + time.time() - t_mark, "best": best,
-                "rng": rng.bit_generator.state, "args": vars(args)}
+                "rng": rng.bit_generator.state, "args": vars(args),
+                "opt_names": [[names[id(p)] for p in g["params"]] for g in opt.param_groups]}
         if heads is not None:
             blob["heads"] = heads.state_dict()
         if adapters is not None:
