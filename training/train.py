@@ -287,7 +287,7 @@ def lr_scale_unpool_groups(model: Matcher, groups: list[dict], scale: float) -> 
         raise ValueError(f"expected SCALE > 0, got {scale:g}")
     fast = {id(p) for p in model.unpools.parameters()}
     kept = [g | {"params": [p for p in g["params"] if id(p) not in fast]} for g in groups]
-    return kept + [{"params": [p for p in model.unpools.parameters()], "lr_scale": float(scale)}]
+    return kept + [{"params": list(model.unpools.parameters()), "lr_scale": float(scale)}]
 
 
 def lr_scale_groups(model: Matcher, params: list, first: float, scale: float) -> list[dict]:
@@ -364,13 +364,18 @@ class HintAdapters(nn.Module):
             m.bias.copy_(w[-1])
 
 
+def group_names(groups: list[dict], names: dict[int, str]) -> list[list[str]]:
+    """The parameters' names (``names``, by id) of each optimiser group, as checkpoints keep them."""
+    return [[names[id(p)] for p in g["params"]] for g in groups]
+
+
 def regrouped_state(opt: torch.optim.Optimizer, saved: dict, saved_names: list[list[str]],
                     names: dict[int, str]) -> dict:
     """``saved`` (an optimiser state whose groups held the parameters named ``saved_names``)
     rearranged for ``opt``'s groups: each parameter keeps its Adam moments, found by name, and
     each group this run's hyper-parameters (its ``lr_scale``). Unchanged where the groups are
     the same. ValueError when the two hold different parameters."""
-    now = [[names[id(p)] for p in g["params"]] for g in opt.param_groups]
+    now = group_names(opt.param_groups, names)
     if now == saved_names:
         return saved
     flat_saved, flat_now = [n for g in saved_names for n in g], [n for g in now for n in g]
@@ -825,9 +830,8 @@ def main() -> None:
         had_hints = state is not None and "hint" in state
         saved_names = None
         if state is not None:
-            saved_names = state.get("opt_names") or (
-                [[names[id(p)] for p in g["params"]] for g in base_groups]
-                + ([[names[id(p)] for p in hint_group["params"]]] if had_hints and hint_group else []))
+            saved_names = state.get("opt_names") or group_names(
+                base_groups + ([hint_group] if had_hints and hint_group else []), names)
         fit_adapters = resume_optimizer(opt, state["opt"] if state is not None else None, hint_group,
                                         had_hints, names, saved_names)
     except ValueError as e:
@@ -932,7 +936,7 @@ def main() -> None:
         blob = {"model": model.state_dict(), "ema": ema.state_dict(), "opt": opt.state_dict(), "pairs": pairs_seen, "steps": steps,
                 "cursor": reader.low_water(), "train_s": spent + time.time() - t_mark, "best": best,
                 "rng": rng.bit_generator.state, "args": vars(args),
-                "opt_names": [[names[id(p)] for p in g["params"]] for g in opt.param_groups]}
+                "opt_names": group_names(opt.param_groups, names)}
         if heads is not None:
             blob["heads"] = heads.state_dict()
         if adapters is not None:
